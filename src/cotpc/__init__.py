@@ -1,0 +1,15 @@
+"""cotpc: Chain-of-Thought Predictive Control (CoTPC, ICML 2024).
+
+Unsupervised subskill discovery from demonstrations and hierarchical imitation learning with a transformer
+whose chain-of-thought tokens predict the next and last subskill states.
+"""
+
+__version__ = "0.1.0"
+
+
+def load_policy(run_dir, device: str = "cpu"):
+    """Load a trained run directory (``config.json`` + ``model.safetensors``) as a policy with ``reset()`` and
+    ``select_action(obs)`` over a batch of environments."""
+    from cotpc.policies import load_policy as _load_policy
+
+    return _load_policy(run_dir, device=device)
