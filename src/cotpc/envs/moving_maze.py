@@ -1,0 +1,388 @@
+"""Moving Maze: the paper's 2-D s-shaped maze with moving bridges and a moving target.
+
+Layout (y up, 60 wide x 80 tall; every choice the paper leaves open is in docs/moving-maze.md)::
+
+    y=80 +--------------------------+----+
+         |  top island  [0,50]      |start|  start square: x in [50,60], centre y in [60,80] (static)
+    y=60 +--+====+------------------+----+
+            |br1 |  bridge 1: 10x10, y in [50,60], centre x moves in [5,25]
+    y=50 +--+====+-----------------------+
+         |  middle island [0,60]         |
+    y=30 +-----------------------+====+--+
+                                 |br2 |     bridge 2: 10x10, y in [20,30], centre x moves in [35,55]
+    y=20 +----+------------------+====+--+
+         |tgt |  bottom island [10,60]   |  target: x in [0,10], centre y moves in [0,20]
+    y=0  +----+--------------------------+
+
+All state lives in :class:`MovingMazeBatch`, which steps many configurations at once with numpy;
+:class:`MovingMazeEnv` is the gymnasium view of one of them. Both share one implementation of the rules.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import gymnasium as gym
+import numpy as np
+
+WIDTH, HEIGHT = 60.0, 80.0
+MAX_ACTION = 4.0  # each action component is clipped to [-4, 4]
+HORIZON = 60  # evaluation horizon (paper: "maximum number of steps as 60")
+BLOCK = 10.0  # squares and bridges are 10 x 10
+SPEED_RANGE = (1.0, 2.0)
+
+# Static islands as (x0, x1, y0, y1), closed rectangles.
+ISLANDS = np.array(
+    [
+        [0.0, 50.0, 60.0, 80.0],  # top
+        [0.0, 60.0, 30.0, 50.0],  # middle
+        [10.0, 60.0, 0.0, 20.0],  # bottom
+    ]
+)
+START_X = 55.0  # start square centre x (right of the top island)
+BRIDGE1_Y, BRIDGE2_Y = 55.0, 25.0  # bridge centres y (they span the 10-high gaps)
+TARGET_X = 5.0  # target centre x (left of the bottom island)
+# Ranges of the block centres (each 20 wide, as in the paper).
+START_Y_RANGE = (60.0, 80.0)
+BRIDGE1_X_RANGE = (5.0, 25.0)
+BRIDGE2_X_RANGE = (35.0, 55.0)
+TARGET_Y_RANGE = (0.0, 20.0)
+# Moving blocks, in this order everywhere: bridge 1 (moves in x), bridge 2 (x), target (y).
+MOVING_RANGES = np.array([BRIDGE1_X_RANGE, BRIDGE2_X_RANGE, TARGET_Y_RANGE])
+MOVING_NAMES = ("bridge1", "bridge2", "target")
+
+# Region ids along the route; regions are the islands cut vertically in the middle (see region_of).
+NUM_REGIONS = 6
+ISLAND_SPLIT_X = (25.0, 30.0, 35.0)  # top, middle, bottom
+
+# Seeds of configurations: disjoint ranges per split, enforced by seeds_for / check_seed.
+SEED_RANGES = {"train": (0, 1_000_000), "val": (1_000_000, 2_000_000), "test": (2_000_000, 3_000_000)}
+OBS_DIM, ACTION_DIM = 10, 2
+
+
+def seeds_for(split: str, num: int, offset: int = 0) -> np.ndarray:
+    """``num`` configuration seeds of ``split``, starting ``offset`` into that split's range."""
+    lo, hi = SEED_RANGES[split]
+    if offset < 0 or lo + offset + num > hi:
+        raise ValueError(f"{num} seeds at offset {offset} do not fit the {split} range [{lo}, {hi})")
+    return np.arange(lo + offset, lo + offset + num)
+
+
+def split_of_seed(seed: int) -> str:
+    for split, (lo, hi) in SEED_RANGES.items():
+        if lo <= seed < hi:
+            return split
+    raise ValueError(f"seed {seed} is outside every split range {SEED_RANGES}")
+
+
+def check_seed(seed: int, split: str) -> None:
+    """Raise unless ``seed`` belongs to ``split`` (keeps train, validation and test configs disjoint)."""
+    if split_of_seed(seed) != split:
+        raise ValueError(f"seed {seed} belongs to the {split_of_seed(seed)} split, not {split}")
+
+
+@dataclass
+class MazeConfig:
+    """Everything that defines one episode: initial positions and signed block velocities."""
+
+    agent_start: tuple[float, float]
+    start_y: float
+    bridge1_x: float
+    bridge2_x: float
+    target_y: float
+    velocities: tuple[float, float, float]  # signed speeds of bridge1 (x), bridge2 (x), target (y)
+
+    def to_dict(self) -> dict:
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "MazeConfig":
+        try:
+            cfg = cls(
+                agent_start=tuple(float(v) for v in d["agent_start"]),
+                start_y=float(d["start_y"]),
+                bridge1_x=float(d["bridge1_x"]),
+                bridge2_x=float(d["bridge2_x"]),
+                target_y=float(d["target_y"]),
+                velocities=tuple(float(v) for v in d["velocities"]),
+            )
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"invalid Moving Maze config {d!r}: {e}") from None
+        cfg.validate()
+        return cfg
+
+    def validate(self) -> None:
+        checks = [
+            (START_Y_RANGE, self.start_y, "start_y"),
+            (BRIDGE1_X_RANGE, self.bridge1_x, "bridge1_x"),
+            (BRIDGE2_X_RANGE, self.bridge2_x, "bridge2_x"),
+            (TARGET_Y_RANGE, self.target_y, "target_y"),
+        ]
+        for (lo, hi), value, name in checks:
+            if not lo <= value <= hi:
+                raise ValueError(f"Moving Maze config: {name}={value} outside [{lo}, {hi}]")
+        if len(self.velocities) != 3 or not all(SPEED_RANGE[0] <= abs(v) <= SPEED_RANGE[1] for v in self.velocities):
+            raise ValueError(f"Moving Maze config: speeds {self.velocities} must have magnitude in {SPEED_RANGE}")
+        ax, ay = self.agent_start
+        if not (WIDTH - BLOCK <= ax <= WIDTH and self.start_y - BLOCK / 2 <= ay <= min(self.start_y + BLOCK / 2, HEIGHT)):
+            raise ValueError(f"Moving Maze config: agent_start {self.agent_start} is not inside the start square")
+
+
+def sample_config(rng: np.random.Generator) -> MazeConfig:
+    """A random configuration: block centres uniform in their ranges, speeds in [1, 2], random directions."""
+    start_y = rng.uniform(*START_Y_RANGE)
+    agent = (rng.uniform(WIDTH - BLOCK, WIDTH), rng.uniform(start_y - BLOCK / 2, min(start_y + BLOCK / 2, HEIGHT)))
+    speeds = rng.uniform(*SPEED_RANGE, size=3) * rng.choice([-1.0, 1.0], size=3)
+    return MazeConfig(
+        agent_start=(float(agent[0]), float(agent[1])),
+        start_y=float(start_y),
+        bridge1_x=float(rng.uniform(*BRIDGE1_X_RANGE)),
+        bridge2_x=float(rng.uniform(*BRIDGE2_X_RANGE)),
+        target_y=float(rng.uniform(*TARGET_Y_RANGE)),
+        velocities=tuple(float(v) for v in speeds),
+    )
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Geometry, vectorised over a batch: points (B, 2), start_y (B,), moving block positions (B, 3).
+
+
+def block_rects(start_y: np.ndarray, moving: np.ndarray) -> np.ndarray:
+    """(B, 4, 4) rectangles (x0, x1, y0, y1) of start square, bridge 1, bridge 2 and target."""
+    h = BLOCK / 2
+    b1, b2, ty = moving[:, 0], moving[:, 1], moving[:, 2]
+    ones = np.ones_like(start_y)
+    return np.stack(
+        [
+            np.stack([ones * (WIDTH - BLOCK), ones * WIDTH, start_y - h, start_y + h], -1),
+            np.stack([b1 - h, b1 + h, ones * (BRIDGE1_Y - h), ones * (BRIDGE1_Y + h)], -1),
+            np.stack([b2 - h, b2 + h, ones * (BRIDGE2_Y - h), ones * (BRIDGE2_Y + h)], -1),
+            np.stack([ones * 0.0, ones * BLOCK, ty - h, ty + h], -1),
+        ],
+        axis=1,
+    )
+
+
+def inside(points: np.ndarray, rects: np.ndarray) -> np.ndarray:
+    """points (B, 2), rects (B, R, 4) or (R, 4) -> (B, R) closed-rectangle membership."""
+    x, y = points[:, 0:1], points[:, 1:2]
+    return (rects[..., 0] <= x) & (x <= rects[..., 1]) & (rects[..., 2] <= y) & (y <= rects[..., 3])
+
+
+def walkable(points: np.ndarray, start_y: np.ndarray, moving: np.ndarray) -> np.ndarray:
+    """(B,) whether each point is inside the maze and on an island or a green block."""
+    in_bounds = (points[:, 0] >= 0) & (points[:, 0] <= WIDTH) & (points[:, 1] >= 0) & (points[:, 1] <= HEIGHT)
+    on_island = inside(points, ISLANDS).any(1)
+    on_block = inside(points, block_rects(start_y, moving)).any(1)
+    return in_bounds & (on_island | on_block)
+
+
+def region_of(points: np.ndarray, start_y: np.ndarray, moving: np.ndarray) -> np.ndarray:
+    """(B,) region id 0..5 along the route, -1 if not walkable.
+
+    Islands are cut vertically in the middle; each bridge belongs to the island below it; the start square belongs
+    to region 0 (top right) and the target to region 5 (bottom left).
+    """
+    on_island = inside(points, ISLANDS)
+    on_block = inside(points, block_rects(start_y, moving))
+    x = points[:, 0]
+    region = np.full(len(points), -1)
+    # Later assignments win: islands first, then blocks (a bridge belongs to the island below it).
+    region = np.where(on_island[:, 0], np.where(x < ISLAND_SPLIT_X[0], 1, 0), region)
+    region = np.where(on_island[:, 1], np.where(x < ISLAND_SPLIT_X[1], 2, 3), region)
+    region = np.where(on_island[:, 2], np.where(x < ISLAND_SPLIT_X[2], 5, 4), region)
+    region = np.where(on_block[:, 0], 0, region)
+    region = np.where(on_block[:, 1], 2, region)
+    region = np.where(on_block[:, 2], 4, region)
+    region = np.where(on_block[:, 3], 5, region)
+    return region
+
+
+def advance_blocks(moving: np.ndarray, velocity: np.ndarray, frozen: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One step of constant-speed back-and-forth motion, reflecting at the range ends; frozen blocks stay."""
+    lo, hi = MOVING_RANGES[:, 0], MOVING_RANGES[:, 1]
+    pos = moving + np.where(frozen, 0.0, velocity)
+    over, under = pos > hi, pos < lo
+    pos = np.where(over, 2 * hi - pos, np.where(under, 2 * lo - pos, pos))
+    velocity = np.where(over | under, -velocity, velocity)
+    return pos, velocity
+
+
+def check_actions(actions, batch_size: int) -> np.ndarray:
+    actions = np.asarray(actions, dtype=np.float64)
+    if actions.shape == (ACTION_DIM,) and batch_size == 1:
+        actions = actions[None]
+    if actions.shape != (batch_size, ACTION_DIM):
+        raise ValueError(f"Moving Maze: expected actions of shape ({batch_size}, {ACTION_DIM}), got {actions.shape}")
+    if not np.all(np.isfinite(actions)):
+        raise ValueError(f"Moving Maze: actions must be finite, got {actions[~np.isfinite(actions).all(1)]}")
+    return actions
+
+
+class MovingMazeBatch:
+    """Many Moving Maze episodes stepped together (numpy, no Python loop over episodes).
+
+    An episode that has reached the target is done: it ignores further actions and stays successful.
+    """
+
+    def __init__(self, configs: list[MazeConfig], horizon: int = HORIZON):
+        if not configs:
+            raise ValueError("MovingMazeBatch needs at least one config")
+        self.configs = list(configs)
+        self.horizon = horizon
+        self.reset()
+
+    @property
+    def num_envs(self) -> int:
+        return len(self.configs)
+
+    def reset(self) -> np.ndarray:
+        c = self.configs
+        self.agent = np.array([cfg.agent_start for cfg in c], dtype=np.float64)
+        self.start_y = np.array([cfg.start_y for cfg in c], dtype=np.float64)
+        self.moving = np.array([[cfg.bridge1_x, cfg.bridge2_x, cfg.target_y] for cfg in c], dtype=np.float64)
+        self.velocity = np.array([cfg.velocities for cfg in c], dtype=np.float64)
+        self.frozen = np.zeros((len(c), 3), dtype=bool)
+        self.success = np.zeros(len(c), dtype=bool)
+        self.elapsed = np.zeros(len(c), dtype=np.int64)
+        # Furthest region reached along the route (number of completed region transitions).
+        self.progress = np.maximum(region_of(self.agent, self.start_y, self.moving), 0)
+        return self.obs()
+
+    def obs(self) -> np.ndarray:
+        """(B, 10): agent (x, y) then the centres of start square, bridge 1, bridge 2 and target."""
+        n = self.num_envs
+        return np.stack(
+            [
+                self.agent[:, 0],
+                self.agent[:, 1],
+                np.full(n, START_X),
+                self.start_y,
+                self.moving[:, 0],
+                np.full(n, BRIDGE1_Y),
+                self.moving[:, 1],
+                np.full(n, BRIDGE2_Y),
+                np.full(n, TARGET_X),
+                self.moving[:, 2],
+            ],
+            axis=1,
+        ).astype(np.float32)
+
+    def state(self) -> np.ndarray:
+        """(B, 13) full simulator state: agent, start_y, moving positions, velocities, frozen flags."""
+        return np.concatenate(
+            [self.agent, self.start_y[:, None], self.moving, self.velocity, self.frozen.astype(np.float64)], axis=1
+        )
+
+    def step(self, actions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Apply (B, 2) displacements. Returns (obs, success, done); done = success or horizon reached."""
+        actions = np.clip(check_actions(actions, self.num_envs), -MAX_ACTION, MAX_ACTION)
+        active = ~self.success & (self.elapsed < self.horizon)
+        # The move is checked against the block positions the agent observed; a move that would leave walkable
+        # ground leaves the agent where it is. Every gap (>= 5) is wider than the largest step (4 per component),
+        # so checking the end point is enough: no move can jump a gap.
+        proposal = self.agent + actions
+        ok = active & walkable(proposal, self.start_y, self.moving)
+        self.agent = np.where(ok[:, None], proposal, self.agent)
+        # A moving block the agent stands on stops for good.
+        on_block = inside(self.agent, block_rects(self.start_y, self.moving))[:, 1:]
+        self.frozen |= on_block & active[:, None]
+        self.moving, self.velocity = advance_blocks(self.moving, self.velocity, self.frozen | ~active[:, None])
+        self.success |= active & on_block[:, 2]
+        self.elapsed += active
+        region = region_of(self.agent, self.start_y, self.moving)
+        self.progress = np.where(active & (region == self.progress + 1), region, self.progress)
+        done = self.success | (self.elapsed >= self.horizon)
+        return self.obs(), self.success.copy(), done
+
+    def render(self, index: int = 0, scale: int = 4, path: np.ndarray | None = None) -> np.ndarray:
+        return render_frame(self.agent[index], self.start_y[index], self.moving[index], scale, path)
+
+
+class MovingMazeEnv(gym.Env):
+    """Gymnasium interface to one Moving Maze episode.
+
+    ``reset(seed=s)`` samples a configuration from ``s``; ``reset(seed=s, options={"config": {...}})`` rebuilds an
+    exact configuration (the demos store it in ``reset_kwargs``). ``info["success"]`` is True once the agent is
+    inside the target; the episode then terminates with reward 1.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, render_mode: str | None = "rgb_array", horizon: int = HORIZON):
+        self.render_mode = render_mode
+        self.horizon = horizon
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(OBS_DIM,), dtype=np.float32)
+        self.action_space = gym.spaces.Box(-MAX_ACTION, MAX_ACTION, shape=(ACTION_DIM,), dtype=np.float32)
+        self._batch: MovingMazeBatch | None = None
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if options and "config" in options:
+            config = MazeConfig.from_dict(options["config"])
+        else:
+            config = sample_config(self.np_random)
+        self.config = config
+        self._batch = MovingMazeBatch([config], horizon=self.horizon)
+        return self._batch.obs()[0], self._info()
+
+    def step(self, action):
+        if self._batch is None:
+            raise RuntimeError("call reset() before step()")
+        obs, success, done = self._batch.step(check_actions(action, 1))
+        terminated = bool(success[0])
+        truncated = bool(done[0]) and not terminated
+        return obs[0], float(terminated), terminated, truncated, self._info()
+
+    def _info(self) -> dict:
+        b = self._batch
+        return {
+            "success": bool(b.success[0]),
+            "region_transitions": int(b.progress[0]),
+            "elapsed_steps": int(b.elapsed[0]),
+            "state": b.state()[0],
+        }
+
+    def render(self):
+        return self._batch.render(0)
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Rendering without a display: plain numpy rasterisation.
+
+COLORS = {
+    "background": (235, 235, 235),
+    "island": (70, 110, 200),
+    "block": (60, 170, 90),
+    "frozen": (30, 120, 60),
+    "target": (240, 180, 40),
+    "agent": (220, 40, 40),
+    "path": (120, 20, 20),
+}
+
+
+def render_frame(
+    agent: np.ndarray, start_y: float, moving: np.ndarray, scale: int = 4, path: np.ndarray | None = None
+) -> np.ndarray:
+    """An (80*scale, 60*scale, 3) uint8 image, y up: islands blue, blocks green, target gold, agent red."""
+    h, w = int(HEIGHT * scale), int(WIDTH * scale)
+    img = np.empty((h, w, 3), dtype=np.uint8)
+    img[:] = COLORS["background"]
+
+    def fill(rect, color):
+        x0, x1, y0, y1 = (np.clip(np.asarray(rect) * scale, 0, [w, w, h, h])).round().astype(int)
+        img[h - y1 : h - y0, x0:x1] = color
+
+    for rect in ISLANDS:
+        fill(rect, COLORS["island"])
+    rects = block_rects(np.array([start_y]), np.asarray(moving, dtype=np.float64)[None])[0]
+    for i, rect in enumerate(rects):
+        fill(rect, COLORS["target"] if i == 3 else COLORS["block"])
+    if path is not None and len(path):
+        for px, py in np.asarray(path):
+            cx, cy = int(px * scale), int(h - py * scale)
+            img[max(cy - 1, 0) : cy + 1, max(cx - 1, 0) : cx + 1] = COLORS["path"]
+    yy, xx = np.mgrid[0:h, 0:w]
+    cx, cy = agent[0] * scale, h - agent[1] * scale
+    img[(xx - cx) ** 2 + (yy - cy) ** 2 <= (1.5 * scale) ** 2] = COLORS["agent"]
+    return img
