@@ -1,0 +1,182 @@
+"""Batched evaluation on Moving Maze: every configuration of a split rolled out at once.
+
+A policy is anything with ``reset()`` and ``select_action(obs: (B, q)) -> (B, p)``: a trained policy from
+:func:`cotpc.load_policy`, or the scripted ones below (used by the tests).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from cotpc.data.trajectories import load_trajectories
+from cotpc.envs.moving_maze import HORIZON, MazeConfig, MovingMazeBatch, check_seed, render_frame
+
+# Which demo file holds each split's configurations, and the seed range they must come from.
+SPLIT_FILES = {"seen": ("train", "train"), "unseen": ("test", "test")}
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """95% Wilson score interval for a success rate (well-behaved at 0% and 100%, unlike the normal one)."""
+    if n == 0:
+        return (0.0, 1.0)
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def load_split_configs(demo_dir: str | Path, split: str, episodes: int | None = None) -> tuple[list[MazeConfig], list[int]]:
+    """Configs (and their seeds) of ``seen`` (the training demos) or ``unseen`` (the test demos)."""
+    if split not in SPLIT_FILES:
+        raise ValueError(f"split must be one of {sorted(SPLIT_FILES)}, got {split!r}")
+    name, seed_split = SPLIT_FILES[split]
+    data = load_trajectories(Path(demo_dir) / f"{name}.h5", extras=())
+    if data.env_info.get("env_id") != "cotpc/MovingMaze-v0":
+        raise ValueError(f"{demo_dir}/{name}.json is for {data.env_info.get('env_id')!r}, not Moving Maze")
+    chosen = data.episodes[:episodes] if episodes else data.episodes
+    configs, seeds = [], []
+    for ep in chosen:
+        seed = int(ep.reset_kwargs["seed"])
+        check_seed(seed, seed_split)  # never evaluate "unseen" on a training config, or the reverse
+        configs.append(MazeConfig.from_dict(ep.reset_kwargs["options"]["config"]))
+        seeds.append(seed)
+    return configs, seeds
+
+
+@dataclass
+class EvalResult:
+    split: str
+    success: np.ndarray  # (E,) bool
+    region_transitions: np.ndarray  # (E,) int, 0..5
+    steps: np.ndarray  # (E,) steps taken (to success, or the horizon)
+    seeds: list[int]
+    seconds: float
+    meta: dict = field(default_factory=dict)
+
+    @property
+    def success_rate(self) -> float:
+        return float(self.success.mean())
+
+    def summary(self) -> dict:
+        lo, hi = wilson_interval(int(self.success.sum()), len(self.success))
+        return {
+            "split": self.split,
+            "episodes": len(self.success),
+            "success_rate": self.success_rate,
+            "ci95": [lo, hi],
+            "mean_region_transitions": float(self.region_transitions.mean()),
+            "seconds": round(self.seconds, 3),
+            **self.meta,
+        }
+
+    def to_json(self, path: str | Path) -> None:
+        episodes = [
+            {"seed": s, "success": bool(ok), "region_transitions": int(r), "steps": int(n)}
+            for s, ok, r, n in zip(self.seeds, self.success, self.region_transitions, self.steps)
+        ]
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).write_text(json.dumps({"summary": self.summary(), "episodes": episodes}, indent=1))
+
+
+def rollout(
+    policy, configs: list[MazeConfig], seeds: list[int], split: str, horizon: int = HORIZON, record: int = 0
+) -> tuple[EvalResult, list[list[np.ndarray]]]:
+    """Roll ``policy`` out in all ``configs`` at once. Returns the result and, for the first ``record`` episodes,
+    the agent positions and block states needed to draw them."""
+    start = time.perf_counter()
+    env = MovingMazeBatch(configs, horizon=horizon)
+    obs = env.reset()
+    policy.reset()
+    steps = np.full(len(configs), horizon)
+    frames: list[list[np.ndarray]] = [[env.state()[i].copy()] for i in range(record)]
+    for t in range(horizon):
+        actions = np.asarray(policy.select_action(obs))
+        was_done = env.success.copy()
+        obs, success, done = env.step(actions)
+        steps[success & ~was_done] = t + 1
+        for i in range(record):
+            frames[i].append(env.state()[i].copy())
+        if done.all():
+            break
+    result = EvalResult(
+        split=split,
+        success=env.success.copy(),
+        region_transitions=env.progress.copy(),
+        steps=steps,
+        seeds=list(seeds),
+        seconds=time.perf_counter() - start,
+    )
+    return result, frames
+
+
+def write_videos(frames: list[list[np.ndarray]], seeds: list[int], success: np.ndarray, out_dir: str | Path) -> list[Path]:
+    """One GIF per recorded episode: agent, blocks and the path so far."""
+    import imageio.v2 as imageio
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for i, states in enumerate(frames):
+        states = np.array(states)
+        images = [
+            render_frame(s[0:2], s[2], s[3:6], scale=3, path=states[: k + 1, 0:2]) for k, s in enumerate(states)
+        ]
+        path = out_dir / f"seed{seeds[i]}_{'success' if success[i] else 'fail'}.gif"
+        imageio.mimsave(path, images, duration=0.1, loop=0)
+        paths.append(path)
+    return paths
+
+
+def evaluate(
+    policy,
+    demo_dir: str | Path,
+    split: str,
+    episodes: int | None = None,
+    video_dir: str | Path | None = None,
+    num_videos: int = 4,
+) -> EvalResult:
+    """Success rate of ``policy`` on the ``seen`` or ``unseen`` Moving Maze configs of ``demo_dir``."""
+    configs, seeds = load_split_configs(demo_dir, split, episodes)
+    record = min(num_videos, len(configs)) if video_dir else 0
+    result, frames = rollout(policy, configs, seeds, split, record=record)
+    if video_dir:
+        result.meta["videos"] = [str(p) for p in write_videos(frames, seeds, result.success, video_dir)]
+    return result
+
+
+class ReplayPolicy:
+    """Plays back recorded action sequences (one per environment); zeros after the end."""
+
+    def __init__(self, action_sequences: list[np.ndarray]):
+        self.sequences = action_sequences
+        self.t = 0
+
+    def reset(self) -> None:
+        self.t = 0
+
+    def select_action(self, obs: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(self.sequences), 2))
+        for i, seq in enumerate(self.sequences):
+            if self.t < len(seq):
+                out[i] = seq[self.t]
+        self.t += 1
+        return out
+
+
+class RandomPolicy:
+    """Uniform random displacements in [-4, 4]^2 (a floor for the success rate)."""
+
+    def __init__(self, seed: int = 0):
+        self.seed = seed
+
+    def reset(self) -> None:
+        self.rng = np.random.default_rng(self.seed)
+
+    def select_action(self, obs: np.ndarray) -> np.ndarray:
+        return self.rng.uniform(-4, 4, size=(len(obs), 2))

@@ -1,0 +1,74 @@
+"""Batched Moving Maze evaluation: scripted policies give the rates they must."""
+
+import json
+
+import numpy as np
+import pytest
+
+from cotpc.cli.main import main as cotpc_main
+from cotpc.data import load_trajectories
+from cotpc.evaluation.maze import (
+    RandomPolicy,
+    ReplayPolicy,
+    evaluate,
+    load_split_configs,
+    rollout,
+    wilson_interval,
+)
+
+
+@pytest.fixture(scope="module")
+def demo_dir(tmp_path_factory):
+    out = tmp_path_factory.mktemp("eval_demos")
+    cotpc_main(["demos", "maze", "--out", str(out), "--train", "30", "--test", "10"])
+    return out
+
+
+def test_replaying_the_demos_succeeds_everywhere(demo_dir, tmp_path):
+    data = load_trajectories(demo_dir / "train.h5")
+    policy = ReplayPolicy([ep.actions for ep in data.episodes])
+    result = evaluate(policy, demo_dir, "seen", video_dir=tmp_path / "videos", num_videos=2)
+    assert result.success.all() and result.success_rate == 1.0
+    assert (result.region_transitions == 5).all()
+    np.testing.assert_array_equal(result.steps, [ep.num_steps for ep in data.episodes])
+    assert len(result.meta["videos"]) == 2 and all((tmp_path / "videos").glob("*.gif"))
+    result.to_json(tmp_path / "r.json")
+    saved = json.loads((tmp_path / "r.json").read_text())
+    assert saved["summary"]["success_rate"] == 1.0 and len(saved["episodes"]) == 30
+
+
+def test_replaying_other_demos_mostly_fails(demo_dir):
+    # The same actions in the wrong configs: the bridges are elsewhere when the agent arrives.
+    data = load_trajectories(demo_dir / "train.h5")
+    shifted = [data.episodes[(i + 1) % len(data.episodes)].actions for i in range(len(data.episodes))]
+    result = evaluate(ReplayPolicy(shifted), demo_dir, "seen")
+    assert result.success_rate < 0.5
+
+
+def test_random_policy_rarely_succeeds(demo_dir):
+    result = evaluate(RandomPolicy(seed=0), demo_dir, "unseen")
+    assert result.success_rate <= 0.1
+    assert result.region_transitions.mean() < 2
+
+
+def test_splits_come_from_their_own_seed_ranges(demo_dir):
+    _, seen = load_split_configs(demo_dir, "seen")
+    _, unseen = load_split_configs(demo_dir, "unseen")
+    assert not set(seen) & set(unseen)
+    with pytest.raises(ValueError):
+        load_split_configs(demo_dir, "validation")
+
+
+def test_rollout_stops_early_and_records_steps(demo_dir):
+    configs, seeds = load_split_configs(demo_dir, "unseen", episodes=3)
+    data = load_trajectories(demo_dir / "test.h5")
+    result, frames = rollout(ReplayPolicy([ep.actions for ep in data.episodes[:3]]), configs, seeds, "unseen", record=1)
+    assert result.success.all()
+    assert len(frames[0]) == max(ep.num_steps for ep in data.episodes[:3]) + 1
+
+
+def test_wilson_interval():
+    lo, hi = wilson_interval(0, 100)
+    assert lo == 0.0 and 0.02 < hi < 0.05
+    lo, hi = wilson_interval(50, 100)
+    assert lo == pytest.approx(0.4038, abs=1e-3) and hi == pytest.approx(0.5962, abs=1e-3)
