@@ -1,0 +1,169 @@
+"""Demonstrations as flat tensors, with vectorised sampling of context windows.
+
+All timesteps of all episodes are concatenated once into ``(S, q)`` / ``(S, p)`` tensors; a batch of windows is
+a single gather with an index matrix ``end[:, None] - (T-1) + arange(T)`` — no per-sample Python. A window
+that would start before its episode is left-padded (``valid`` False; the padded entries hold the episode's
+first step, and the model masks them out).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from cotpc.data.trajectories import TrajectorySet
+
+
+class MissingSubskillsError(ValueError):
+    """The data file has no ``subskill_ends`` but the policy needs CoT targets."""
+
+
+@dataclass
+class Stats:
+    obs_mean: torch.Tensor
+    obs_std: torch.Tensor
+    act_mean: torch.Tensor
+    act_std: torch.Tensor
+
+    @staticmethod
+    def of(obs: np.ndarray, actions: np.ndarray) -> "Stats":
+        def mean_std(x):
+            x = torch.as_tensor(x, dtype=torch.float64)
+            std = x.std(0, unbiased=False)
+            std = torch.where(std < 1e-6, torch.ones_like(std), std)  # a constant dimension stays as is
+            return x.mean(0).float(), std.float()
+
+        return Stats(*mean_std(obs), *mean_std(actions))
+
+
+def split_episodes(n: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Seeded split of episode indices into (train, val); val gets round(n * fraction) (>= 1 if fraction > 0
+    and n >= 2)."""
+    n_val = int(round(n * val_fraction))
+    if val_fraction > 0 and n >= 2:
+        n_val = max(n_val, 1)
+    n_val = min(n_val, n - 1)
+    perm = np.random.default_rng(seed).permutation(n)
+    return np.sort(perm[n_val:]), np.sort(perm[:n_val])
+
+
+def episode_cot_targets(ep, targets: tuple[str, ...], rng: np.random.Generator, where: str) -> np.ndarray:
+    """(N, k*q) CoT targets of one episode, in the order of ``targets``."""
+    parts = []
+    if "next" in targets or "last" in targets:
+        if "subskill_ends" not in ep.extras:
+            raise MissingSubskillsError(
+                f"{where}: episode {ep.episode_id} has no subskill_ends, which this policy needs as CoT targets; "
+                f"run `cotpc segment DATA.h5 --beta 0.05` (0.02 for dual-arm tasks) on the data file first"
+            )
+        from cotpc.subskills import cot_targets
+
+        nxt, last = cot_targets(ep.obs, ep.extras["subskill_ends"])
+    n = ep.num_steps
+    for name in targets:
+        if name == "next":
+            parts.append(nxt)
+        elif name == "last":
+            parts.append(last)
+        elif name == "random":
+            # a random *future* observation s(r), r uniform in {t+1..N}, drawn once per timestep (seeded)
+            t = np.arange(n)
+            r = t + 1 + np.floor(rng.random(n) * (n - t)).astype(np.int64)
+            parts.append(ep.obs[r])
+        else:
+            raise ValueError(f"unknown CoT target {name!r}")
+    return np.concatenate(parts, axis=1).astype(np.float32)
+
+
+class WindowDataset:
+    """Context windows of a subset of episodes, normalised, as tensors on one device."""
+
+    def __init__(
+        self,
+        trajs: TrajectorySet,
+        episodes: np.ndarray | list[int],
+        context: int,
+        stats: Stats,
+        cot_targets: tuple[str, ...] = (),
+        seed: int = 0,
+        device: str | torch.device = "cpu",
+        where: str = "data",
+    ):
+        eps = [trajs.episodes[i] for i in episodes]
+        if not eps:
+            raise ValueError("no episodes")
+        self.context, self.device = context, torch.device(device)
+        lengths = np.array([ep.num_steps for ep in eps])
+        starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+        obs = np.concatenate([ep.obs[:-1] for ep in eps])  # s(0..N-1): the states that get an action
+        act = np.concatenate([ep.actions for ep in eps])
+        dev = self.device
+        self.obs = ((torch.as_tensor(obs) - stats.obs_mean) / stats.obs_std).to(dev)
+        self.actions = ((torch.as_tensor(act) - stats.act_mean) / stats.act_std).to(dev)
+        self.timesteps = torch.as_tensor(np.concatenate([np.arange(n) for n in lengths])).to(dev)
+        self.ep_start = torch.as_tensor(np.repeat(starts, lengths)).to(dev)
+        self.cot = None
+        if cot_targets:
+            rng = np.random.default_rng(seed)
+            cot = np.concatenate([episode_cot_targets(ep, cot_targets, rng, where) for ep in eps])
+            k = len(cot_targets)
+            cot = (torch.as_tensor(cot).view(-1, k, obs.shape[1]) - stats.obs_mean) / stats.obs_std
+            self.cot = cot.view(-1, k * obs.shape[1]).to(dev)
+        self.size = int(lengths.sum())
+        self.offsets = torch.arange(context, device=dev) - (context - 1)
+
+    def __len__(self) -> int:
+        return self.size
+
+    def windows(self, ends: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Windows ending at flat indices ``ends`` (B,)."""
+        idx = ends[:, None] + self.offsets  # (B, T)
+        start = self.ep_start[ends][:, None]
+        valid = idx >= start
+        idx = torch.maximum(idx, start)  # padding repeats the first step; it is masked out anyway
+        batch = {
+            "states": self.obs[idx],
+            "actions": self.actions[idx],
+            "timesteps": self.timesteps[idx],
+            "valid": valid,
+        }
+        if self.cot is not None:
+            batch["cot"] = self.cot[idx]
+        return batch
+
+    def sample(self, batch_size: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
+        """Uniformly random window ends, plus the random CoT-mask length l in {0..T-1} per sample."""
+        ends = torch.randint(self.size, (batch_size,), generator=generator).to(self.device)
+        batch = self.windows(ends)
+        batch["cot_hide"] = torch.randint(self.context, (batch_size,), generator=generator).to(self.device)
+        return batch
+
+
+def synthetic_trajectories(
+    n_episodes: int = 16, obs_dim: int = 6, action_dim: int = 2, length: int = 30, n_segments: int = 3,
+    seed: int = 0, env_id: str = "Synthetic-v0",
+) -> TrajectorySet:
+    """Small learnable demos for tests and benchmarks (with ``subskill_ends``): each episode moves a point in
+    ``n_segments`` straight segments of random direction; the observation is the position followed by the
+    episode's segment directions (so the right action is predictable from the state and the history)."""
+    from cotpc.data.trajectories import Episode
+
+    rng = np.random.default_rng(seed)
+    episodes = []
+    for i in range(n_episodes):
+        n = int(rng.integers(max(n_segments, length - 5), length + 1))
+        dirs = rng.normal(size=(n_segments, action_dim)).astype(np.float32)
+        dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+        ends = np.sort(rng.choice(np.arange(n - 1), n_segments - 1, replace=False)).tolist() + [n - 1]
+        seg = np.searchsorted(np.array(ends), np.arange(n))
+        actions = dirs[seg] + 0.05 * rng.normal(size=(n, action_dim)).astype(np.float32)
+        pos = np.concatenate([np.zeros((1, action_dim)), np.cumsum(actions, 0)]).astype(np.float32)
+        ctx = np.resize(dirs.ravel(), obs_dim - action_dim) if obs_dim > action_dim else np.zeros(0)
+        obs = np.concatenate([pos, np.repeat(ctx[None].astype(np.float32), n + 1, 0)], axis=1)[:, :obs_dim]
+        episodes.append(Episode(
+            obs=obs.astype(np.float32), actions=actions.astype(np.float32), success=np.arange(n) == n - 1,
+            episode_id=i, reset_kwargs={"seed": i}, extras={"subskill_ends": np.array(ends, dtype=np.int64)},
+        ))
+    return TrajectorySet(episodes=episodes, env_info={"env_id": env_id, "env_kwargs": {}, "max_episode_steps": length})

@@ -1,0 +1,165 @@
+"""Policy configuration: one dataclass, and every policy of the paper as a named preset of it.
+
+The baselines (DT, BeT) and the ablations of paper Table 4 are *settings* of one transformer
+(:mod:`cotpc.policies.transformer`), not separate models; only ``bc`` (an MLP) and ``decoupled`` (which adds a
+second transformer for the CoT) differ in structure.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Literal
+
+Source = Literal["state", "cot", "action"]
+CotTarget = Literal["next", "last", "random"]
+
+
+@dataclass(frozen=True)
+class PolicyConfig:
+    """Architecture, loss and recommended optimisation settings of a policy."""
+
+    name: str = "cotpc"
+    """Preset name this configuration came from (informational)."""
+    arch: Literal["mlp", "transformer"] = "transformer"
+    """``mlp``: Markovian BC; ``transformer``: the GPT backbone with interleaved state/action tokens."""
+
+    # --- transformer backbone ---
+    context: int = 10
+    """Context size T: timesteps of state (and action) history in a window (paper: 10 ManiSkill, 20 maze)."""
+    d_model: int = 128
+    """Embedding size."""
+    n_layers: int = 4
+    """Number of transformer blocks."""
+    n_heads: int = 8
+    """Attention heads per block."""
+    dropout: float = 0.0
+    """Dropout on embeddings, attention and residuals (the official CoTPC code trains with 0)."""
+    use_actions: bool = True
+    """Interleave past action tokens with state tokens (DT style, used by BeT and CoTPC in the paper)."""
+    n_cot: int = 0
+    """CoT prompt tokens: 0 = none (DT/BeT), -1 = one per timestep (T, CoTPC), or an explicit count."""
+    random_cot_mask: bool = True
+    """In training, hide a random suffix of the window from the CoT tokens (paper Sec. 4.2.3)."""
+
+    # --- heads and losses ---
+    action_head: Literal["mse", "bet"] = "bet"
+    """``mse``: continuous MLP decoder (DT, BC); ``bet``: k-means centre classifier + per-centre offsets."""
+    centre_from: Source = "state"
+    """Token features the centre classifier (or the MSE decoder) reads for timestep i."""
+    offset_from: Source = "state"
+    """Token features the offset regressor reads for timestep i (``cot``: the i-th CoT token)."""
+    n_centres: int = 128
+    """k-means clusters K of the normalised actions (paper: 128 ManiSkill, 1024 maze/kitchen)."""
+    offset_weight: float = 100.0
+    """Weight of the offset MSE relative to the centre cross-entropy (paper: 100)."""
+    cot_targets: tuple[CotTarget, ...] = ()
+    """What the CoT decoder predicts per CoT token: ``next``/``last`` subskill state, or a ``random`` future state."""
+    cot_weight: float = 0.1
+    """lambda, the weight of the CoT MSE (paper: 0.1)."""
+    cot_layer: int = -1
+    """Block whose CoT-token features feed the CoT decoder (-1 = last; a per-task choice in the paper)."""
+    decoupled: bool = False
+    """A second transformer predicts the CoT, which is fed (with the state) to a BeT-style action transformer."""
+    hidden: int = 256
+    """Hidden width of the encoders and decoders (and of the BC MLP)."""
+
+    # --- recommended optimisation (TrainConfig flags override) ---
+    lr: float = 5e-4
+    """Peak learning rate."""
+    min_lr: float = 5e-5
+    """Final learning rate of the cosine schedule."""
+    schedule: Literal["cosine", "constant"] = "cosine"
+    """Learning-rate schedule after the warm-up."""
+    warmup_iters: int = 1000
+    """Linear warm-up iterations (capped at a tenth of the run)."""
+    batch_size: int = 256
+    """Global batch size (split across DDP processes)."""
+    weight_decay: float = 1e-4
+    """AdamW weight decay on matrices (biases, LayerNorms, embeddings and prompt tokens are not decayed)."""
+
+    @property
+    def n_cot_tokens(self) -> int:
+        if self.arch != "transformer":
+            return 0
+        return self.context if self.n_cot == -1 else self.n_cot
+
+    @property
+    def window(self) -> int:
+        """Timesteps per training window (1 for the Markovian MLP)."""
+        return 1 if self.arch == "mlp" else self.context
+
+    @property
+    def needs_subskills(self) -> bool:
+        """True if training needs ``subskill_ends`` in the data file."""
+        return any(t in ("next", "last") for t in self.cot_targets)
+
+    def replace(self, **changes) -> "PolicyConfig":
+        cfg = dataclasses.replace(self, **changes)
+        cfg.validate()
+        return cfg
+
+    def validate(self) -> None:
+        if self.arch == "mlp":
+            return
+        if self.d_model % self.n_heads:
+            raise ValueError(f"d_model={self.d_model} must be divisible by n_heads={self.n_heads}")
+        if self.context < 1:
+            raise ValueError("context must be >= 1")
+        n_cot = self.n_cot_tokens
+        for src in (self.centre_from, self.offset_from):
+            if src == "cot" and n_cot != self.context:
+                raise ValueError(f"reading a head from CoT tokens needs one CoT token per timestep (n_cot=-1), got {n_cot}")
+            if src == "action" and not self.use_actions:
+                raise ValueError("a head reads action tokens but use_actions is False")
+        if self.cot_targets and n_cot == 0:
+            raise ValueError("cot_targets need CoT tokens (n_cot != 0)")
+        if n_cot not in (0, 1, self.context):
+            raise ValueError(f"n_cot must be 0, 1 or the context size, got {n_cot}")
+        if not -self.n_layers <= self.cot_layer < self.n_layers:
+            raise ValueError(f"cot_layer={self.cot_layer} out of range for {self.n_layers} layers")
+        if self.decoupled and self.cot_targets != ("next", "last"):
+            raise ValueError("decoupled predicts the next and last subskill states")
+
+
+_COTPC = PolicyConfig(
+    name="cotpc", n_cot=-1, action_head="bet", centre_from="state", offset_from="cot", cot_targets=("next", "last")
+)
+
+PRESETS: dict[str, PolicyConfig] = {
+    # Baselines (paper appendix "Implementation Details").
+    "bc": PolicyConfig(
+        name="bc", arch="mlp", action_head="mse", lr=1e-3, min_lr=1e-3, schedule="constant", warmup_iters=0,
+        batch_size=32, weight_decay=0.0,
+    ),
+    "dt": PolicyConfig(name="dt", action_head="mse"),
+    "bet": PolicyConfig(name="bet", action_head="bet"),
+    # The method.
+    "cotpc": _COTPC,
+    # Ablations (paper Table 4), all configurations of the CoTPC model.
+    "only-last": dataclasses.replace(_COTPC, name="only-last", cot_targets=("last",)),
+    "only-next": dataclasses.replace(_COTPC, name="only-next", cot_targets=("next",)),
+    "random": dataclasses.replace(_COTPC, name="random", cot_targets=("random",)),
+    "vanilla": dataclasses.replace(_COTPC, name="vanilla", n_cot=1, offset_from="state"),
+    "o-shared": dataclasses.replace(_COTPC, name="o-shared", centre_from="cot", offset_from="cot"),
+    "swapped": dataclasses.replace(_COTPC, name="swapped", centre_from="cot", offset_from="action"),
+    "bet-prompt": dataclasses.replace(_COTPC, name="bet-prompt", cot_targets=(), cot_weight=0.0),
+    "no-rand-mask": dataclasses.replace(_COTPC, name="no-rand-mask", random_cot_mask=False),
+    "decoupled": dataclasses.replace(_COTPC, name="decoupled", decoupled=True, offset_from="state"),
+}
+for _cfg in PRESETS.values():
+    _cfg.validate()
+
+
+def get_preset(name: str, **overrides) -> PolicyConfig:
+    if name not in PRESETS:
+        raise ValueError(f"unknown policy {name!r}; choose one of {', '.join(PRESETS)}")
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    return PRESETS[name].replace(**overrides)
+
+
+def task_defaults(env_id: str | None) -> dict:
+    """Paper settings that depend on the task: context size and number of k-means centres."""
+    if env_id and "maze" in env_id.lower():
+        return {"context": 20, "n_centres": 1024}
+    return {"context": 10, "n_centres": 128}

@@ -1,0 +1,163 @@
+"""The one GPT backbone: token layout, attention mask, pre-LN blocks (nanoGPT style).
+
+A window of T timesteps ending at time t is laid out as
+
+    [cot_0 .. cot_{C-1}], s(t-T+1), a(t-T+1), ..., s(t-1), a(t-1), s(t)          (C + 2T - 1 tokens)
+
+(without the action tokens when ``use_actions`` is False). Window index i = 0..T-1 stands for timestep
+t-T+1+i. Who may attend to whom is decided by :func:`build_mask` from this layout alone:
+
+- CoT tokens are all-to-all (they see every token, including each other);
+- state/action tokens are causal (an earlier or the same token) and see all CoT tokens;
+- training only: CoT tokens do not see state/action tokens of window index i > T-1-l (timesteps t' > t-l),
+  with l drawn per sample;
+- windows that start before the episode are left-padded; padded tokens are hidden from everyone (each token
+  still sees itself, so no softmax row is empty and nothing turns NaN).
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from cotpc.policies.config import PolicyConfig
+
+
+def mlp(sizes: list[int], act: type[nn.Module] = nn.ReLU) -> nn.Sequential:
+    """Linear layers of the given sizes with ``act`` between them (none after the last)."""
+    layers: list[nn.Module] = []
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+        layers.append(nn.Linear(a, b))
+        if i < len(sizes) - 2:
+            layers.append(act())
+    return nn.Sequential(*layers)
+
+
+class Layout:
+    """Token positions of a window: which token is a CoT, state or action token, and its window index."""
+
+    def __init__(self, context: int, n_cot: int, use_actions: bool):
+        self.T, self.C, self.use_actions = context, n_cot, use_actions
+        T, C = context, n_cot
+        stride = 2 if use_actions else 1
+        self.state_pos = torch.arange(T) * stride + C  # token index of s(i)
+        self.action_pos = torch.arange(T - 1) * 2 + C + 1 if use_actions else torch.zeros(0, dtype=torch.long)
+        self.length = C + (2 * T - 1 if use_actions else T)
+        kind = torch.zeros(self.length, dtype=torch.long)  # 0 cot, 1 state, 2 action
+        step = torch.full((self.length,), -1, dtype=torch.long)  # window index (-1 for CoT tokens)
+        kind[self.state_pos] = 1
+        step[self.state_pos] = torch.arange(T)
+        if use_actions:
+            kind[self.action_pos] = 2
+            step[self.action_pos] = torch.arange(T - 1)
+        self.kind, self.step = kind, step
+
+
+def build_mask(layout: Layout, valid: torch.Tensor | None = None, cot_hide: torch.Tensor | None = None) -> torch.Tensor:
+    """Boolean attention mask, True = may attend: (L, L) without per-sample parts, else (B, 1, L, L).
+
+    Args:
+        layout: the token layout.
+        valid: (B, T) bool, False for left-padding window indices (before the episode start).
+        cot_hide: (B,) long, the drawn l: CoT tokens do not see window indices i > T-1-l.
+    """
+    L, T = layout.length, layout.T
+    is_cot = layout.kind == 0
+    pos = torch.arange(L)
+    # causal among state/action tokens, and everyone sees the CoT tokens; CoT tokens see everything
+    mask = (pos[None, :] <= pos[:, None]) | is_cot[None, :] | is_cot[:, None]
+    if valid is None and cot_hide is None:
+        return mask
+    B = (valid if valid is not None else cot_hide).shape[0]
+    device = (valid if valid is not None else cot_hide).device
+    mask = mask.to(device).expand(B, L, L).clone()
+    step = layout.step.to(device)
+    key_step = step.clamp(min=0)[None, :].expand(B, L)  # (B, L)
+    if cot_hide is not None:
+        hidden = (step[None, :] >= 0) & (key_step > (T - 1 - cot_hide)[:, None])  # (B, L) keys hidden from CoT
+        mask[:, is_cot.to(device), :] &= ~hidden[:, None, :]
+    if valid is not None:
+        key_ok = torch.gather(valid, 1, key_step) | (step[None, :] < 0)  # (B, L)
+        mask &= key_ok[:, None, :]
+        mask |= torch.eye(L, dtype=torch.bool, device=device)  # a padded query sees itself: no empty row
+    return mask[:, None]
+
+
+class Block(nn.Module):
+    """Pre-LN transformer block with fused QKV and ``F.scaled_dot_product_attention``."""
+
+    def __init__(self, d: int, n_heads: int, dropout: float):
+        super().__init__()
+        self.n_heads, self.dropout = n_heads, dropout
+        self.ln1, self.ln2 = nn.LayerNorm(d), nn.LayerNorm(d)
+        self.qkv = nn.Linear(d, 3 * d)
+        self.proj = nn.Linear(d, d)
+        self.mlp = nn.Sequential(nn.Linear(d, 4 * d), nn.GELU(), nn.Linear(4 * d, d), nn.Dropout(dropout))
+        self.resid_drop = nn.Dropout(dropout)
+
+    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        B, L, D = x.shape
+        q, k, v = self.qkv(self.ln1(x)).view(B, L, 3, self.n_heads, D // self.n_heads).permute(2, 0, 3, 1, 4)
+        y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=self.dropout if self.training else 0.0)
+        x = x + self.resid_drop(self.proj(y.transpose(1, 2).reshape(B, L, D)))
+        return x + self.mlp(self.ln2(x))
+
+
+class GPT(nn.Module):
+    """Encoders, positional embeddings, CoT prompt tokens and the blocks. Returns token features."""
+
+    def __init__(self, cfg: PolicyConfig, state_dim: int, action_dim: int, max_timestep: int, n_cot: int):
+        super().__init__()
+        d = cfg.d_model
+        self.cfg, self.max_timestep = cfg, max_timestep
+        self.layout = Layout(cfg.context, n_cot, cfg.use_actions)
+        self.state_enc = mlp([state_dim, cfg.hidden, d])
+        self.action_enc = mlp([action_dim, cfg.hidden, d]) if cfg.use_actions else None
+        self.cot_tokens = nn.Parameter(torch.zeros(n_cot, d)) if n_cot else None  # no positional embedding
+        self.global_emb = nn.Embedding(max_timestep, d)  # episode timestep, DT style
+        self.local_emb = nn.Parameter(torch.zeros(cfg.context, d))  # index in the window
+        self.drop = nn.Dropout(cfg.dropout)
+        self.blocks = nn.ModuleList([Block(d, cfg.n_heads, cfg.dropout) for _ in range(cfg.n_layers)])
+        self.ln_f = nn.LayerNorm(d)
+        # the inference mask never changes: build it once (a buffer follows .to(device), not saved)
+        self.register_buffer("base_mask", build_mask(self.layout), persistent=False)
+
+    def forward(
+        self,
+        states: torch.Tensor,
+        actions: torch.Tensor | None,
+        timesteps: torch.Tensor,
+        valid: torch.Tensor | None = None,
+        cot_hide: torch.Tensor | None = None,
+        keep_layer: int | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """states (B,T,q) normalised, actions (B,T-1,p) normalised, timesteps (B,T) long.
+
+        Returns the final LayerNorm'd features (B, L, d) and, if ``keep_layer`` is set, the raw output of that
+        block (for the CoT decoder).
+        """
+        B, T, _ = states.shape
+        lay = self.layout
+        pos = self.global_emb(timesteps.clamp(0, self.max_timestep - 1)) + self.local_emb  # (B, T, d)
+        s = self.state_enc(states) + pos
+        parts = []
+        if lay.C:
+            parts.append(self.cot_tokens.expand(B, -1, -1))
+        if lay.use_actions:
+            a = self.action_enc(actions) + pos[:, :-1]
+            sa = torch.stack([s[:, :-1], a], dim=2).reshape(B, 2 * (T - 1), -1)  # s0 a0 s1 a1 ...
+            parts += [sa, s[:, -1:]]
+        else:
+            parts.append(s)
+        x = self.drop(torch.cat(parts, dim=1) if len(parts) > 1 else parts[0])
+        if valid is None and cot_hide is None:
+            mask = self.base_mask
+        else:
+            mask = build_mask(lay, valid, cot_hide if lay.C else None)
+        kept = None
+        for j, block in enumerate(self.blocks):
+            x = block(x, mask)
+            if j == keep_layer:
+                kept = x
+        return self.ln_f(x), kept

@@ -1,0 +1,341 @@
+"""Training, readable top to bottom (CleanRL style): config -> data -> model -> optimiser -> loop -> checkpoints.
+
+Single process: ``cotpc train --data DATA.h5 --policy cotpc --out runs/x``.
+Several processes / GPUs / nodes: ``torchrun --nproc_per_node=N -m cotpc.train --data ...`` (DDP; gloo on CPU,
+NCCL on GPU). The global batch is split across processes; rank 0 validates, logs and writes checkpoints.
+
+A run directory holds the latest checkpoint (``config.json`` + ``model.safetensors``), ``training_state.pt``
+(model, optimiser, scheduler, RNG states, step: everything ``--resume`` needs), ``best/`` (the checkpoint with
+the lowest validation action loss on held-out demos of the training file) and ``tb/`` (TensorBoard).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import sys
+import time
+from contextlib import nullcontext
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional
+
+import numpy as np
+import torch
+import torch.distributed as dist
+import torch.nn as nn
+
+from cotpc.data.dataset import Stats, WindowDataset, split_episodes
+from cotpc.data.trajectories import load_trajectories
+from cotpc.policies.config import PRESETS, get_preset, task_defaults
+from cotpc.policies.kmeans import kmeans
+from cotpc.policies.model import make_model
+from cotpc.policies.policy import CheckpointError, config_to_dict, load_state, save_checkpoint
+
+PolicyName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
+
+
+@dataclass
+class TrainConfig:
+    """Train a policy on a demonstration file."""
+
+    data: Path
+    """Trajectory file (NAME.h5 with NAME.json beside it); CoT policies need `cotpc segment` run on it first."""
+    policy: PolicyName = "cotpc"  # type: ignore[valid-type]
+    """Policy preset: baselines bc/dt/bet, the method cotpc, or one of the paper's ablations."""
+    out: Path = Path("runs/train")
+    """Run directory (checkpoints, best/, tb/)."""
+    iters: int = 20_000
+    """Training iterations (paper: 200K maze, 100K-500K ManiSkill; fewer here for a CPU)."""
+    seed: int = 0
+    """Seed for the train/val split, k-means, initialisation and batch sampling."""
+    context: Optional[int] = None
+    """Context size T (default: 20 for Moving Maze, 10 otherwise, as in the paper)."""
+    batch_size: Optional[int] = None
+    """Global batch size (default: the preset's, 256; 32 for bc)."""
+    lr: Optional[float] = None
+    """Peak learning rate (default: the preset's, 5e-4; 1e-3 for bc)."""
+    min_lr: Optional[float] = None
+    """Final learning rate of the cosine schedule (default 5e-5)."""
+    warmup_iters: Optional[int] = None
+    """Linear warm-up iterations (default 1000, capped at a tenth of the run)."""
+    weight_decay: Optional[float] = None
+    """AdamW weight decay of the matrices (default 1e-4; 0 for bc)."""
+    n_centres: Optional[int] = None
+    """k-means centres K for bet/cotpc (default: 1024 maze, 128 otherwise)."""
+    cot_layer: Optional[int] = None
+    """Block whose CoT features feed the CoT decoder (default -1, the last)."""
+    d_model: Optional[int] = None
+    """Embedding size (default 128)."""
+    n_layers: Optional[int] = None
+    """Transformer blocks (default 4)."""
+    n_heads: Optional[int] = None
+    """Attention heads (default 8)."""
+    dropout: Optional[float] = None
+    """Dropout (default 0, as the official code)."""
+    grad_clip: float = 1.0
+    """Clip the global gradient norm to this value (0 = off)."""
+    val_fraction: float = 0.1
+    """Fraction of the file's episodes held out for the validation loss (split by episode, seeded)."""
+    val_every: int = 1000
+    """Validation interval in iterations (also at the end)."""
+    ckpt_every: int = 5000
+    """Checkpoint interval in iterations (also at the end)."""
+    keep_checkpoints: bool = False
+    """Also keep every periodic checkpoint under checkpoints/step_N/ (for last-k-checkpoint protocols)."""
+    log_every: int = 100
+    """TensorBoard / progress-bar update interval."""
+    resume: bool = False
+    """Continue the run in --out from its training_state.pt (same weights as an uninterrupted run)."""
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    """Device (auto: cuda if available)."""
+    bf16: bool = True
+    """bfloat16 autocast for the forward pass (about 4x faster matmuls on this CPU; weights stay fp32)."""
+    threads: Optional[int] = None
+    """CPU threads per process (default: torch's; under torchrun on CPU, cores / processes)."""
+    progress: bool = True
+    """Show a tqdm progress bar."""
+    stop_after: Optional[int] = None
+    """Stop after this iteration as if killed (testing --resume); the schedule still follows --iters."""
+
+
+def _param_groups(model: nn.Module, weight_decay: float) -> list[dict]:
+    """Decay only Linear weights; biases, LayerNorms, embeddings and prompt tokens are not decayed."""
+    decay, no_decay = [], []
+    for module in model.modules():
+        for name, p in module.named_parameters(recurse=False):
+            (decay if isinstance(module, nn.Linear) and name == "weight" else no_decay).append(p)
+    return [{"params": decay, "weight_decay": weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
+
+
+def _lr_lambda(cfg, iters: int):
+    warm = min(cfg.warmup_iters, iters // 10)
+
+    def f(step: int) -> float:
+        if step < warm:
+            return (step + 1) / warm
+        if cfg.schedule == "constant":
+            return 1.0
+        progress = min(1.0, (step - warm) / max(1, iters - warm))
+        return (cfg.min_lr + (cfg.lr - cfg.min_lr) * 0.5 * (1 + math.cos(math.pi * progress))) / cfg.lr
+
+    return f
+
+
+@torch.no_grad()
+def evaluate_loss(model: nn.Module, ds: WindowDataset, autocast, chunk: int = 1024) -> dict[str, float]:
+    """Mean losses over every window of ``ds`` (no random CoT mask, dropout off)."""
+    was_training = model.training
+    model.eval()
+    sums: dict[str, float] = {}
+    for start in range(0, len(ds), chunk):
+        ends = torch.arange(start, min(start + chunk, len(ds)), device=ds.device)
+        with autocast():
+            _, metrics = model.loss(ds.windows(ends))
+        for k, v in metrics.items():
+            sums[k] = sums.get(k, 0.0) + float(v) * len(ends)
+    model.train(was_training)
+    return {k: v / len(ds) for k, v in sums.items()}
+
+
+def _rng_state(gen: torch.Generator) -> dict:
+    s = {"data": gen.get_state(), "torch": torch.get_rng_state()}
+    if torch.cuda.is_available():
+        s["cuda"] = torch.cuda.get_rng_state_all()
+    return s
+
+
+def _set_rng_state(gen: torch.Generator, s: dict) -> None:
+    gen.set_state(s["data"])
+    torch.set_rng_state(s["torch"])
+    if "cuda" in s and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(s["cuda"])
+
+
+def train(config: TrainConfig) -> Path:
+    """Train and return the run directory."""
+    # --- processes and devices ---
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    device = config.device
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda":
+        device = f"cuda:{local_rank}"
+        torch.cuda.set_device(device)
+    ddp = world > 1
+    if ddp and not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if device.startswith("cuda") else "gloo")
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    elif ddp and device == "cpu":
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // int(os.environ.get("LOCAL_WORLD_SIZE", world))))
+    main_proc = rank == 0
+    run_dir = Path(config.out)
+
+    # --- data ---
+    trajs = load_trajectories(config.data)
+    env_id = trajs.env_info.get("env_id")
+    defaults = task_defaults(env_id)
+    cfg = get_preset(
+        config.policy,
+        context=config.context or defaults["context"],
+        n_centres=config.n_centres or defaults["n_centres"],
+        batch_size=config.batch_size, lr=config.lr, min_lr=config.min_lr, warmup_iters=config.warmup_iters,
+        weight_decay=config.weight_decay, cot_layer=config.cot_layer, d_model=config.d_model,
+        n_layers=config.n_layers, n_heads=config.n_heads, dropout=config.dropout,
+    )
+    if cfg.batch_size % world:
+        raise ValueError(f"batch size {cfg.batch_size} is not divisible by the {world} processes")
+    train_eps, val_eps = split_episodes(len(trajs), config.val_fraction, config.seed)
+    obs_all = np.concatenate([trajs.episodes[i].obs[:-1] for i in train_eps])
+    act_all = np.concatenate([trajs.episodes[i].actions for i in train_eps])
+    stats = Stats.of(obs_all, act_all)
+    where = str(config.data)
+    ds = WindowDataset(trajs, train_eps, cfg.window, stats, cfg.cot_targets, config.seed, device, where)
+    val_ds = WindowDataset(trajs, val_eps, cfg.window, stats, cfg.cot_targets, config.seed + 1, device, where) \
+        if len(val_eps) else None
+    q, p = trajs.obs_dim, trajs.action_dim
+    max_timestep = max(int(trajs.env_info.get("max_episode_steps") or 0), max(ep.num_steps + 1 for ep in trajs.episodes))
+
+    # --- model (identical on every rank: same seed; DDP also broadcasts rank 0's) ---
+    torch.manual_seed(config.seed)
+    model = make_model(cfg, q, p, max_timestep)
+    model.norm.obs_mean.copy_(stats.obs_mean), model.norm.obs_std.copy_(stats.obs_std)
+    model.norm.act_mean.copy_(stats.act_mean), model.norm.act_std.copy_(stats.act_std)
+    if cfg.action_head == "bet":  # BeT: k-means of the normalised training actions, once, saved as a buffer
+        model.centres.copy_(kmeans(ds.actions.cpu(), cfg.n_centres, seed=config.seed))
+    model.to(device)
+    optimizer = torch.optim.AdamW(_param_groups(model, cfg.weight_decay), lr=cfg.lr, betas=(0.9, 0.95))
+    scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, _lr_lambda(cfg, config.iters))
+    gen = torch.Generator().manual_seed(config.seed * 1000 + rank + 1)
+    step, best_val = 0, float("inf")
+
+    meta = {
+        "max_timestep": max_timestep,
+        "dataset": {"path": str(config.data), "env_id": env_id, "env_info": trajs.env_info,
+                    "num_episodes": len(trajs), "train_episodes": len(train_eps),
+                    "val_episode_ids": [trajs.episodes[i].episode_id for i in val_eps]},
+        "train": {k: (str(v) if isinstance(v, Path) else v) for k, v in dataclasses.asdict(config).items()},
+    }
+    state_path = run_dir / "training_state.pt"
+    if config.resume and state_path.exists():
+        state = torch.load(state_path, map_location="cpu", weights_only=False)
+        saved = state["policy"]
+        if saved != config_to_dict(cfg) or state["dims"] != [q, p]:
+            diff = {k: (saved.get(k), v) for k, v in config_to_dict(cfg).items() if saved.get(k) != v}
+            raise CheckpointError(
+                f"{run_dir}: cannot resume: the run was trained with another configuration or data "
+                f"(differences (saved, now): {diff or ''} dims {state['dims']} vs {[q, p]})"
+            )
+        load_state(model, state["model"], str(state_path))
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        _set_rng_state(gen, state["rng"][rank])
+        step, best_val = state["step"], state["best_val"]
+    elif not config.resume and state_path.exists():
+        raise FileExistsError(f"{run_dir} already holds a run; pass --resume to continue it or choose another --out")
+
+    train_model = nn.parallel.DistributedDataParallel(model) if ddp else model
+    autocast = (lambda: torch.autocast(device.split(":")[0], dtype=torch.bfloat16)) if config.bf16 else nullcontext
+    local_batch = cfg.batch_size // world
+
+    writer = None
+    if main_proc:
+        from torch.utils.tensorboard import SummaryWriter
+
+        run_dir.mkdir(parents=True, exist_ok=True)
+        writer = SummaryWriter(str(run_dir / "tb"), purge_step=step if step else None)
+
+    def checkpoint(at: int, val: dict | None) -> None:
+        """Rank 0: weights + config, then the full training state, each written atomically."""
+        rng = [_rng_state(gen)]
+        if ddp:
+            rng = [None] * world
+            dist.all_gather_object(rng, _rng_state(gen))
+        if not main_proc:
+            return
+        info = {**meta, "step": at, "val": val}
+        save_checkpoint(run_dir, model, info)
+        if config.keep_checkpoints:
+            save_checkpoint(run_dir / "checkpoints" / f"step_{at:07d}", model, info)
+        state = {"step": at, "best_val": best_val, "policy": config_to_dict(cfg), "dims": [q, p],
+                 "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                 "scheduler": scheduler.state_dict(), "rng": rng}
+        tmp = state_path.with_name(state_path.name + ".tmp")
+        torch.save(state, tmp)
+        os.replace(tmp, state_path)
+
+    # --- loop ---
+    end = config.iters if config.stop_after is None else min(config.iters, config.stop_after)
+    bar = None
+    if main_proc and config.progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=config.iters, initial=step, desc=f"train {cfg.name}", dynamic_ncols=True, file=sys.stderr)
+    t0, start_step, last_val = time.perf_counter(), step, None
+    loss_v = float("nan")
+    train_model.train()
+    while step < end:
+        batch = ds.sample(local_batch, gen)
+        with autocast():
+            loss, metrics = train_model(batch)  # forward() is the loss, so DDP's gradient hooks fire
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        if config.grad_clip > 0:
+            nn.utils.clip_grad_norm_(model.parameters(), config.grad_clip)
+        optimizer.step()
+        scheduler.step()
+        step += 1
+
+        if main_proc and (step % config.log_every == 0 or step == end):
+            loss_v = float(loss)
+            lr = scheduler.get_last_lr()[0]
+            for k, v in metrics.items():
+                writer.add_scalar(f"train/{k}", float(v), step)
+            writer.add_scalar("train/lr", lr, step)
+            if bar is not None:
+                bar.set_postfix(loss=f"{loss_v:.4f}", lr=f"{lr:.2e}", refresh=False)
+        if bar is not None:
+            bar.update(1)
+        if main_proc and val_ds is not None and (step % config.val_every == 0 or step == config.iters):
+            last_val = evaluate_loss(model, val_ds, autocast)
+            for k, v in last_val.items():
+                writer.add_scalar(f"val/{k}", v, step)
+            if last_val["bc"] < best_val:  # select on the held-out *action* loss, never on test success
+                best_val = last_val["bc"]
+                save_checkpoint(run_dir / "best", model, {**meta, "step": step, "val": last_val})
+        if step % config.ckpt_every == 0 or step == end:
+            checkpoint(step, last_val)
+
+    if bar is not None:
+        bar.close()
+    if main_proc:
+        writer.close()
+        secs = time.perf_counter() - t0
+        done = step - start_step
+        val_txt = f", val action loss {last_val['bc']:.4f} (best {best_val:.4f})" if last_val else ""
+        print(f"{cfg.name}: {step}/{config.iters} iters ({done} in {secs:.1f} s, {1000 * secs / max(done, 1):.1f} "
+              f"ms/iter), loss {loss_v:.4f}{val_txt} -> {run_dir}")
+    if ddp:
+        dist.barrier()
+    return run_dir
+
+
+def main(argv: list[str] | None = None, prog: str = "cotpc train") -> None:
+    import tyro
+
+    config = tyro.cli(TrainConfig, args=sys.argv[1:] if argv is None else argv, prog=prog)
+    from cotpc.data.dataset import MissingSubskillsError
+    from cotpc.data.trajectories import TrajectoryFormatError
+
+    try:
+        train(config)
+    except (MissingSubskillsError, TrajectoryFormatError, CheckpointError, FileExistsError) as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        raise SystemExit(2)
+    finally:
+        if dist.is_initialized():
+            dist.destroy_process_group()
