@@ -125,6 +125,7 @@ class Policy:
     def num_envs(self) -> int | None:
         return None if self._states is None else self._states.shape[0]
 
+    @torch.inference_mode()
     def reset(self, envs=None) -> None:
         if envs is None or self._states is None:
             self._states = None

@@ -291,10 +291,10 @@ def train(config: TrainConfig) -> Path:
         step += 1
 
         if main_proc and (step % config.log_every == 0 or step == end):
-            loss_v = float(loss)
+            loss_v = loss.item()
             lr = scheduler.get_last_lr()[0]
             for k, v in metrics.items():
-                writer.add_scalar(f"train/{k}", float(v), step)
+                writer.add_scalar(f"train/{k}", v.item(), step)
             writer.add_scalar("train/lr", lr, step)
             if bar is not None:
                 bar.set_postfix(loss=f"{loss_v:.4f}", lr=f"{lr:.2e}", refresh=False)

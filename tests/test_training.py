@@ -1,0 +1,93 @@
+"""The training loop: run directory contents, exact resume, clear errors, bf16 tracking fp32, the CLI."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import load_file
+
+from cotpc.data import save_trajectories
+from cotpc.data.dataset import MissingSubskillsError, synthetic_trajectories
+from cotpc.policies import CheckpointError, load_policy
+from cotpc.training import TrainConfig, train
+
+TINY = dict(context=4, d_model=32, n_heads=4, n_layers=2, n_centres=8, batch_size=32, progress=False,
+            val_every=10, log_every=5, warmup_iters=4)
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    path = tmp_path_factory.mktemp("data") / "demos.h5"
+    save_trajectories(path, synthetic_trajectories(n_episodes=10, obs_dim=6, action_dim=2, length=20, seed=0))
+    return path
+
+
+def test_train_writes_a_loadable_run(data, tmp_path):
+    run = train(TrainConfig(data=data, out=tmp_path / "run", iters=20, ckpt_every=10, **TINY))
+    for f in ("config.json", "model.safetensors", "training_state.pt", "best/model.safetensors"):
+        assert (run / f).exists(), f
+    info = json.loads((run / "config.json").read_text())
+    assert info["step"] == 20 and info["policy"]["name"] == "cotpc" and info["obs_dim"] == 6
+    assert info["val"]["bc"] > 0 and len(info["dataset"]["val_episode_ids"]) == 1
+    assert list((run / "tb").iterdir())
+    pol = load_policy(run)
+    assert pol.select_action(np.zeros((2, 6), np.float32)).shape == (2, 2)
+    with pytest.raises(FileExistsError, match="--resume"):
+        train(TrainConfig(data=data, out=tmp_path / "run", iters=20, **TINY))
+
+
+@pytest.mark.parametrize("policy", ["cotpc", "bc"])
+def test_resume_reaches_the_same_weights(data, tmp_path, policy):
+    kw = dict(TINY, dropout=0.1) if policy == "cotpc" else dict(TINY)  # dropout: the RNG state must resume too
+    full = train(TrainConfig(data=data, policy=policy, out=tmp_path / "full", iters=16, ckpt_every=8, **kw))
+    part = tmp_path / "part"
+    train(TrainConfig(data=data, policy=policy, out=part, iters=16, ckpt_every=8, stop_after=8, **kw))
+    assert json.loads((part / "config.json").read_text())["step"] == 8
+    train(TrainConfig(data=data, policy=policy, out=part, iters=16, ckpt_every=8, resume=True, **kw))
+    a, b = load_file(str(full / "model.safetensors")), load_file(str(part / "model.safetensors"))
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+
+
+def test_resume_with_other_config_or_data_is_a_clear_error(data, tmp_path):
+    train(TrainConfig(data=data, out=tmp_path / "run", iters=4, **TINY))
+    with pytest.raises(CheckpointError, match="another configuration"):
+        train(TrainConfig(data=data, policy="bet", out=tmp_path / "run", iters=8, resume=True, **TINY))
+    other = tmp_path / "other.h5"
+    save_trajectories(other, synthetic_trajectories(n_episodes=10, obs_dim=7, action_dim=2, length=20, seed=1))
+    with pytest.raises(CheckpointError, match="dims"):
+        train(TrainConfig(data=other, out=tmp_path / "run", iters=8, resume=True, **TINY))
+
+
+def test_missing_subskills_tells_how_to_segment(tmp_path):
+    trajs = synthetic_trajectories(n_episodes=4, obs_dim=6, action_dim=2, length=20)
+    for ep in trajs.episodes:
+        ep.extras.clear()
+    save_trajectories(tmp_path / "raw.h5", trajs)
+    with pytest.raises(MissingSubskillsError, match="cotpc segment"):
+        train(TrainConfig(data=tmp_path / "raw.h5", out=tmp_path / "run", iters=2, **TINY))
+    # policies without CoT targets train on it
+    train(TrainConfig(data=tmp_path / "raw.h5", policy="bet", out=tmp_path / "bet", iters=2, **TINY))
+
+
+def test_bf16_tracks_fp32(data, tmp_path):
+    """bf16 autocast changes the numbers slightly but not the learning: the losses track each other."""
+    vals = {}
+    for bf16 in (False, True):
+        run = train(TrainConfig(data=data, out=tmp_path / f"bf16_{bf16}", iters=60, val_every=20, bf16=bf16,
+                                **{k: v for k, v in TINY.items() if k != "val_every"}))
+        vals[bf16] = json.loads((run / "config.json").read_text())["val"]["loss"]
+    assert abs(vals[True] - vals[False]) < 0.1 * vals[False], vals
+
+
+def test_cli_help_documents_flags(capsys):
+    from cotpc.cli.train import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["--help"], prog="cotpc train")
+    assert e.value.code == 0
+    out = capsys.readouterr().out
+    for flag in ("--data", "--policy", "--resume", "--bf16", "--ckpt-every", "--val-fraction"):
+        assert flag in out
