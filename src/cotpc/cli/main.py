@@ -11,6 +11,7 @@ import sys
 # verb -> (module with a ``main(argv, prog)`` function, one-line description)
 VERBS: dict[str, tuple[str, str]] = {
     "demos": ("cotpc.cli.demos", "Generate demonstrations (Moving Maze) in ManiSkill3's trajectory format."),
+    "train": ("cotpc.cli.train", "Train a policy (bc, dt, bet, cotpc or an ablation) on a demonstration file."),
     "eval": ("cotpc.cli.eval", "Roll a trained policy out on seen or unseen configs; success rate with a 95% CI."),
 }
 
