@@ -24,6 +24,12 @@ Zero-norm convention (no NaN, ever):
   d_cos(0, 0) = 0 and d_cos(x, 0) = 1, so C = (number of non-zero actions) / n: an all-zero segment costs 0.
 - both are relative tolerances, so the result is invariant to scaling all actions by a positive factor.
 
+Cost variants (``cost=``): "mean-cosine" is the paper's C above (the default everywhere). "sum-cosine" uses
+n * C, the *total* cosine distance of the segment, so a segment's cost grows with its length like the classic
+additive change-point costs. Under the mean cost one long noisy segment costs at most ~1 however long it is, so
+noisy demos collapse to a single segment for any beta above the per-segment noise level (measured on Moving
+Maze in docs/subskills.md); the sum cost does not have that failure. Everything else is shared.
+
 Tie-breaking: when several predecessors i give the same F[j] (bit-for-bit), the smallest i wins, i.e. the
 longest last segment. Float rounding of the prefix-sum formulation is ~1e-12 relative for typical inputs;
 segmentations whose objectives differ by less than that are not distinguished.
@@ -45,6 +51,7 @@ ZERO_MEAN_RTOL = 1e-6  # |sum v| <= this * sum |v| counts as a zero segment mean
 _NOISE = 64 * np.finfo(np.float64).eps  # rounding noise of |S|^2 from the prefix-sum expansion (relative)
 _BLOCK_ELEMS = 1 << 19  # elements per cost block: two float64 blocks (8 MB) stay in cache
 _WIDTH = 16  # end indices per block: narrower wastes less of the rectangular block on unused i > j
+COSTS = ("mean-cosine", "sum-cosine")
 
 
 def _check_actions(actions, where: str = "actions") -> np.ndarray:
@@ -62,7 +69,9 @@ def _check_actions(actions, where: str = "actions") -> np.ndarray:
     return a
 
 
-def _check_params(beta: float, min_size: int) -> tuple[float, int]:
+def _check_params(beta: float, min_size: int, cost: str = COSTS[0]) -> tuple[float, int]:
+    if cost not in COSTS:
+        raise ValueError(f"cost must be one of {COSTS}, got {cost!r}")
     beta = float(beta)
     if not math.isfinite(beta) or beta < 0:
         raise ValueError(f"beta must be a finite number >= 0, got {beta}")
@@ -81,6 +90,8 @@ def _unit(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _segment_cost(u: np.ndarray, v: np.ndarray, norms: np.ndarray, nonzero: np.ndarray) -> float:
+    """C of one segment summed directly (the reference the fast path is checked against); ``u``, ``norms`` and
+    ``nonzero`` come from :func:`_unit` over the whole trajectory, so "zero action" is decided trajectory-wide."""
     n = len(v)
     s = v.sum(axis=0)
     s_norm = float(np.linalg.norm(s))
@@ -90,36 +101,40 @@ def _segment_cost(u: np.ndarray, v: np.ndarray, norms: np.ndarray, nonzero: np.n
     return float(np.clip(np.mean(1.0 - u @ s / s_norm), 0.0, 2.0))
 
 
-def objective(actions, ends, beta: float) -> float:
-    """J of the segmentation ``ends`` (inclusive end indices, strictly increasing, last = N-1)."""
+def objective(actions, ends, beta: float, cost: str = "mean-cosine") -> float:
+    """J of the segmentation ``ends`` (inclusive end indices, strictly increasing, last = N-1).
+
+    Computed segment by segment with direct sums (independent of the DP's prefix-sum expansion).
+    """
     a = _check_actions(actions)
-    beta, _ = _check_params(beta, 1)
+    beta, _ = _check_params(beta, 1, cost)
     ends = check_ends(ends, len(a))
     u, norms, nonzero = _unit(a)
     total, start = 0.0, 0
     for e in ends:
         sl = slice(start, int(e) + 1)
-        total += _segment_cost(u[sl], a[sl], norms[sl], nonzero[sl]) + beta
+        c = _segment_cost(u[sl], a[sl], norms[sl], nonzero[sl])
+        total += (c if cost == "mean-cosine" else c * (int(e) + 1 - start)) + beta
         start = int(e) + 1
     return total
 
 
-def discover(actions, beta: float, min_size: int = 1) -> np.ndarray:
+def discover(actions, beta: float, min_size: int = 1, cost: str = "mean-cosine") -> np.ndarray:
     """Exact minimiser of J for one trajectory of (N, p) actions.
 
     Returns the inclusive segment end indices (int64, strictly increasing, last = N-1); every segment holds at
-    least ``min_size`` actions. See the module docstring for the zero-norm convention and tie-breaking.
+    least ``min_size`` actions. See the module docstring for the zero-norm convention, ``cost`` and tie-breaking.
     """
-    return discover_batch([actions], beta, min_size)[0]
+    return discover_batch([actions], beta, min_size, cost)[0]
 
 
-def discover_batch(actions_list: Sequence, beta: float, min_size: int = 1) -> list[np.ndarray]:
+def discover_batch(actions_list: Sequence, beta: float, min_size: int = 1, cost: str = "mean-cosine") -> list[np.ndarray]:
     """:func:`discover` for many trajectories at once (any lengths); same results, much faster.
 
     Trajectories are sorted by length and grouped, each group padded with zero actions to its longest member
     (padding sits after a trajectory's end, so it cannot change that trajectory's DP values).
     """
-    beta, min_size = _check_params(beta, min_size)
+    beta, min_size = _check_params(beta, min_size, cost)
     arrays = [_check_actions(a, f"actions[{k}]") for k, a in enumerate(actions_list)]
     for k, a in enumerate(arrays):
         if len(a) < min_size:
@@ -136,7 +151,7 @@ def discover_batch(actions_list: Sequence, beta: float, min_size: int = 1) -> li
             groups.append([k])
 
     def run(group: list[int]) -> list[np.ndarray]:
-        return _dp_group([arrays[k] for k in group], len(arrays[group[-1]]), beta, min_size)
+        return _dp_group([arrays[k] for k in group], len(arrays[group[-1]]), beta, min_size, cost == "sum-cosine")
 
     # One single-threaded worker per core, each on whole groups. Torch's own intra-op threads would have to meet
     # at a barrier after each of the thousands of small per-column ops: fine on an idle machine, but when another
@@ -159,7 +174,7 @@ def discover_batch(actions_list: Sequence, beta: float, min_size: int = 1) -> li
     return out
 
 
-def _dp_group(arrays: list[np.ndarray], L: int, beta: float, min_size: int) -> list[np.ndarray]:
+def _dp_group(arrays: list[np.ndarray], L: int, beta: float, min_size: int, summed: bool) -> list[np.ndarray]:
     B, p = len(arrays), arrays[0].shape[1]
     f64 = torch.float64
     lengths = np.array([len(a) for a in arrays])
@@ -187,16 +202,25 @@ def _dp_group(arrays: list[np.ndarray], L: int, beta: float, min_size: int) -> l
     ss = (ps * ps).sum(dim=2)  # |PS_i|^2
     us = (pu * ps).sum(dim=2)  # PU_i . PS_i
 
-    def rows_of(*parts):  # stack (B, L+1, k) / (B, L+1) parts along a feature axis -> (B, L+1, sum k)
-        return torch.cat([x if x.dim() == 3 else x[..., None] for x in parts], dim=2)
+    def rows_of(*parts, transpose=False):  # (B, L+1, k) / (B, L+1) parts side by side: (B, L+1, sum k)
+        parts = [x if x.dim() == 3 else x[..., None] for x in parts]
+        k = sum(x.shape[2] for x in parts)
+        out = torch.empty((B, k, L + 1) if transpose else (B, L + 1, k), dtype=f64)
+        c = 0
+        for x in parts:  # writing straight into the (transposed) layout saves a copy
+            (out[:, c : c + x.shape[2]] if transpose else out[..., c : c + x.shape[2]]).copy_(
+                x.transpose(1, 2) if transpose else x
+            )
+            c += x.shape[2]
+        return out
 
     one = torch.ones((B, L + 1), dtype=f64)
     # Row i of X times row j of Y gives, for the segment (i, j]:
     #   |S|^2 = |PS_i|^2 + |PS_j|^2 - 2 PS_i.PS_j        U.S = PU_i.PS_i + PU_j.PS_j - PU_i.PS_j - PS_i.PU_j
     # X is stored transposed, (B, k, L+1), which is what the batched matrix product reads fastest.
-    xs = rows_of(ps, ss, one).transpose(1, 2).contiguous()
+    xs = rows_of(ps, ss, one, transpose=True)
     ys = rows_of(-2 * ps, one, ss)
-    xu = rows_of(pu, ps, us, one).transpose(1, 2).contiguous()
+    xu = rows_of(pu, ps, us, one, transpose=True)
     yu = rows_of(-ps, -pu, one, us)
     # Zero mean (the convention's branch) when |S|^2 <= tol^2 (PN_j - PN_i)^2 + noise (|PS_i|^2 + |PS_j|^2), the
     # last term covering the rounding of the expansion itself. The fast path below runs whenever every
@@ -208,8 +232,11 @@ def _dp_group(arrays: list[np.ndarray], L: int, beta: float, min_size: int) -> l
     xz = yz = None  # X_i . Y_j = |S|^2 - threshold (<= 0: zero mean); built only if needed
 
     inv_n = 1.0 / torch.arange(L, 0, -1, dtype=f64)  # inv_n[L - j + i] = 1 / (j - i)
-    G = torch.full((B, L + 1), math.inf, dtype=f64)  # G[i] = F[i] + 1; F[0] = 0, F[i] = best J of actions < i
-    G[:, 0] = 1.0
+    # F[i] = best J of actions 0..i-1 (F[0] = 0). We store H[i] = F[i] + off[i] with off = 1 (mean cost) or -i
+    # (sum cost), which turns F[i] + cost(i, j) into H[i] - U.S / (n |S|), resp. H[i] - U.S / |S| + j.
+    off = -torch.arange(L + 1, dtype=f64) if summed else torch.ones(L + 1, dtype=f64)
+    H = torch.full((B, L + 1), math.inf, dtype=f64)
+    H[:, 0] = off[0]
     arg = torch.zeros((B, L + 1), dtype=torch.int64)
     width = max(1, min(_WIDTH, _BLOCK_ELEMS // (B * (L + 1))))
     for j0 in range(min_size, L + 1, width):
@@ -221,14 +248,16 @@ def _dp_group(arrays: list[np.ndarray], L: int, beta: float, min_size: int) -> l
         # the last `width` predecessors include i > j - min_size (even i = j, |S| = 0): keep them out of the check
         tri = torch.arange(rows - (j1 - j0), rows)[None, :] > torch.arange(j0, j1)[:, None] - min_size
         s2[:, :, rows - (j1 - j0) :].masked_fill_(tri, math.inf)
-        if bool((s2.amin(dim=(1, 2)) > thr).all()):  # fast path: F[i] + C(i, j) = G[i] - U.S / (n |S|)
+        if bool((s2.amin(dim=(1, 2)) > thr).all()):  # fast path: no zero means in this block
             q = s2.rsqrt_().mul_(dot)  # U.S / |S|
             for j in range(j0, j1):
                 r, w = j - min_size + 1, j - j0
-                cand = torch.addcmul(G[:, :r], q[:, w, :r], inv_n[L - j : L - j + r], value=-1.0)
-                best, idx = torch.min(cand, dim=1)  # first minimum -> smallest i on exact ties
-                G[:, j] = best + (beta + 1.0)
-                arg[:, j] = idx
+                if summed:
+                    cand = torch.sub(H[:, :r], q[:, w, :r])
+                else:
+                    cand = torch.addcmul(H[:, :r], q[:, w, :r], inv_n[L - j : L - j + r], value=-1.0)
+                torch.min(cand, dim=1, out=(H[:, j], arg[:, j]))  # first minimum -> smallest i on exact ties
+                H[:, j] += beta + (0.0 if summed else 1.0)  # F[j] + off[j]
             continue
         if xz is None:
             xz, yz = zero_rows()
@@ -237,9 +266,11 @@ def _dp_group(arrays: list[np.ndarray], L: int, beta: float, min_size: int) -> l
             inv = inv_n[L - j : L - j + r]
             zero = torch.bmm(xz[:, :r], yz[:, j, :, None])[..., 0] <= 0
             cost = (1.0 - dot[:, w, :r] * torch.rsqrt(s2[:, w, :r].clamp_min(1e-300)) * inv).clamp_(0.0, 2.0)
-            cost = torch.where(zero, (pz[:, j : j + 1] - pz[:, :r]) * inv, cost)
-            best, idx = torch.min(G[:, :r] + cost, dim=1)
-            G[:, j] = best + beta
+            cost = torch.where(zero, (pz[:, j : j + 1] - pz[:, :r]) * inv, cost)  # C = nnz / n
+            if summed:
+                cost = cost / inv  # n C
+            best, idx = torch.min(H[:, :r] - off[:r] + cost, dim=1)
+            H[:, j] = best + beta + off[j]
             arg[:, j] = idx
     # backtrack all trajectories together: follow arg from each trajectory's own end N, marking segment ends
     arg = arg.numpy()
