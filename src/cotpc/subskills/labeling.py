@@ -1,0 +1,39 @@
+"""Label a trajectory file with discovered subskills: ``traj_<i>/subskill_ends`` plus the parameters as attributes."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+from cotpc.data.trajectories import TrajectorySet, load_trajectories, write_episode_datasets
+from cotpc.subskills.discovery import discover_batch
+from cotpc.subskills.evaluate import score
+
+METHOD = "exact-dp"  # stored in the attributes: exact dynamic programming (not PELT)
+
+
+def label_file(
+    path: str | os.PathLike,
+    beta: float,
+    min_size: int = 1,
+    cost: str = "mean-cosine",
+    tol: int = 2,
+    trajectories: TrajectorySet | None = None,
+) -> tuple[dict, list[np.ndarray]]:
+    """Discover subskills for every episode of ``path`` and store them, replacing earlier labels.
+
+    Returns (summary, ends per episode). The summary holds the segmentation statistics, the seconds taken by
+    discovery, and, when the episodes carry privileged ``key_steps``, precision / recall within ``tol`` steps.
+    ``trajectories`` may pass the already loaded file to avoid reading it twice.
+    """
+    ts = load_trajectories(path) if trajectories is None else trajectories
+    t0 = time.perf_counter()
+    ends = discover_batch([ep.actions for ep in ts.episodes], beta, min_size, cost)
+    seconds = time.perf_counter() - t0
+    attrs = {"beta": float(beta), "min_size": int(min_size), "method": METHOD, "cost": cost}
+    write_episode_datasets(path, "subskill_ends", {ep.episode_id: e for ep, e in zip(ts.episodes, ends)}, attrs)
+    keys = [ep.extras["key_steps"] for ep in ts.episodes] if all("key_steps" in ep.extras for ep in ts.episodes) else None
+    summary = {**attrs, "seconds": seconds, **score(ends, keys, tol)}
+    return summary, ends

@@ -1,0 +1,113 @@
+"""Figures for subskill discovery (matplotlib, Agg backend): action similarity maps with the discovered
+boundaries (the paper's Fig. 3), Moving Maze paths coloured by subskill, and the beta sweep."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from cotpc.subskills.discovery import _unit  # noqa: E402
+from cotpc.subskills.targets import key_state_indices  # noqa: E402
+
+MAZE_ENV_ID = "cotpc/MovingMaze-v0"
+
+
+def cosine_similarity_map(actions: np.ndarray) -> np.ndarray:
+    """(N, N) pairwise cosine similarity of the actions; a zero action has similarity 0 to everything."""
+    u, _, _ = _unit(np.asarray(actions, dtype=np.float64))
+    return u @ u.T
+
+
+def plot_similarity_maps(out: Path, actions_list, ends_list, titles, key_steps_list=None) -> Path:
+    """One panel per demo: the action cosine-similarity map, discovered boundaries as white lines (and, if
+    given, the privileged key steps as ticks on the axes)."""
+    k = len(actions_list)
+    fig, axes = plt.subplots(1, k, figsize=(3.2 * k, 3.4), squeeze=False)
+    for i, (ax, a, ends) in enumerate(zip(axes[0], actions_list, ends_list)):
+        im = ax.imshow(cosine_similarity_map(a), cmap="viridis", vmin=-1, vmax=1, interpolation="nearest")
+        for c in np.asarray(ends)[:-1]:
+            ax.axhline(c + 0.5, color="white", lw=1.0)
+            ax.axvline(c + 0.5, color="white", lw=1.0)
+        if key_steps_list is not None:
+            # key step k = first state of a new region = boundary after action k - 1
+            ks = np.asarray(key_steps_list[i]) - 0.5
+            ax.plot(ks, np.full(len(ks), -0.5), "v", color="red", ms=5, clip_on=False)
+            ax.plot(np.full(len(ks), -0.5), ks, ">", color="red", ms=5, clip_on=False)
+        ax.set_title(titles[i], fontsize=8)
+        ax.set_xlabel("action index", fontsize=7)
+        ax.tick_params(labelsize=6)
+    fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label="cosine similarity")
+    note = "white lines: discovered boundaries" + ("; red marks: privileged key steps" if key_steps_list else "")
+    fig.suptitle(f"Pairwise action cosine similarity ({note})", fontsize=9)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return out
+
+
+def plot_maze_paths(out: Path, episodes, ends_list, titles) -> Path:
+    """Moving Maze demos (obs[:, :2] = agent x, y): the path coloured by subskill, discovered key states
+    (``obs[c_i + 1]``) as circles, privileged ``key_steps`` as black crosses."""
+    try:  # the maze background, if the environment package is importable
+        from cotpc.envs.maze_figure import draw_maze
+    except ImportError:  # pragma: no cover - the figure still shows the paths
+        draw_maze = None
+    k = len(episodes)
+    fig, axes = plt.subplots(1, k, figsize=(2.4 * k, 3.6), squeeze=False)
+    cmap = plt.get_cmap("tab10")
+    for ax, ep, ends, title in zip(axes[0], episodes, ends_list, titles):
+        obs = ep.obs
+        if draw_maze is not None:
+            draw_maze(ax, obs[0])
+        else:
+            ax.set_xlim(-2, 62)
+            ax.set_ylim(-2, 82)
+            ax.set_aspect("equal")
+        start = 0
+        for s, c in enumerate(ends):  # segment s: states start .. c + 1
+            xy = obs[start : int(c) + 2, :2]
+            ax.plot(xy[:, 0], xy[:, 1], "-", color=cmap(s % 10), lw=1.6)
+            ax.plot(xy[:-1, 0], xy[:-1, 1], ".", color=cmap(s % 10), ms=3)
+            start = int(c) + 1
+        ax.plot(*obs[0, :2], "s", color="black", ms=4)
+        key = obs[key_state_indices(ends)[:-1], :2]
+        ax.plot(key[:, 0], key[:, 1], "o", mfc="none", mec="red", mew=1.5, ms=8, label="discovered key states")
+        if "key_steps" in ep.extras:
+            true = obs[np.asarray(ep.extras["key_steps"]), :2]
+            ax.plot(true[:, 0], true[:, 1], "x", color="black", mew=1.5, ms=6, label="privileged key steps")
+        ax.set_title(title, fontsize=8)
+    axes[0][0].legend(loc="lower right", fontsize=6)
+    fig.suptitle("Moving Maze demos coloured by discovered subskill", fontsize=9)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return out
+
+
+def plot_sweep(out: Path, tables: dict[str, list[dict]], tol: int) -> Path:
+    """Precision / recall against key steps and subskills per demo as functions of beta, one column per cost."""
+    fig, axes = plt.subplots(1, len(tables), figsize=(4.6 * len(tables), 3.4), squeeze=False)
+    for ax, (cost, rows) in zip(axes[0], tables.items()):
+        betas = [r["beta"] for r in rows]
+        if "precision" in rows[0]:
+            ax.plot(betas, [r["precision"] for r in rows], "o-", label="precision")
+            ax.plot(betas, [r["recall"] for r in rows], "s-", label="recall")
+            ax.plot(betas, [r["f1"] for r in rows], "^-", label="F1")
+        ax.set_xscale("log")
+        ax.set_ylim(0, 1.02)
+        ax.set_xlabel("beta")
+        ax.set_title(f"{cost} (within +-{tol} steps)", fontsize=9)
+        ax2 = ax.twinx()
+        ax2.plot(betas, [r["subskills_mean"] for r in rows], "k--", lw=1, label="subskills / demo")
+        ax2.set_ylabel("subskills / demo (dashed)")
+        ax.legend(loc="center left", fontsize=7)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out
