@@ -83,10 +83,7 @@ def run(cfg: Config) -> dict:
     actions = [ep.actions for ep in episodes]
 
     if cfg.sweep_beta:
-        tables = {c: sweep(actions, keys, cfg.sweep_beta, cfg.min_size, cfg.tol) for c in cfg.sweep_cost}
-        for c, rows in tables.items():
-            for r in rows:
-                r["cost"] = c
+        tables = {c: sweep(actions, keys, cfg.sweep_beta, cfg.min_size, cfg.tol, c) for c in cfg.sweep_cost}
         if cfg.json:
             print(json.dumps(tables, indent=1))
         else:

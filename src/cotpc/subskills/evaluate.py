@@ -65,13 +65,13 @@ def score(ends_list: Sequence[np.ndarray], key_steps: Sequence[np.ndarray] | Non
 
 
 def sweep(actions: Sequence[np.ndarray], key_steps: Sequence[np.ndarray] | None, betas: Sequence[float],
-          min_size: int = 1, tol: int = 2) -> list[dict]:
+          min_size: int = 1, tol: int = 2, cost: str = "mean-cosine") -> list[dict]:
     """:func:`score` of the exact segmentation for each beta (one row per beta, with the seconds it took)."""
     rows = []
     for beta in betas:
         t0 = time.perf_counter()
-        ends = discover_batch(actions, beta, min_size)
-        rows.append({"beta": float(beta), "seconds": time.perf_counter() - t0, **score(ends, key_steps, tol)})
+        ends = discover_batch(actions, beta, min_size, cost)
+        rows.append({"cost": cost, "beta": float(beta), "seconds": time.perf_counter() - t0, **score(ends, key_steps, tol)})
     return rows
 
 
