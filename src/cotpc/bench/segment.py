@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import statistics
 import time
 from dataclasses import asdict, dataclass
@@ -21,7 +22,7 @@ import tyro
 
 from cotpc.subskills.discovery import ZERO_MEAN_RTOL, _check_actions, _unit, discover_batch, objective
 
-NOISE_LEVELS = {"low": 0.1, "medium": 0.5, "high": 1.5}
+NOISE_LEVELS = {"low": 0.02, "medium": 0.1, "high": 0.5}  # std per component; directions have norm 0.5..2
 
 
 @dataclass
@@ -165,6 +166,8 @@ def run(cfg: Config) -> dict:
     ours_s = statistics.median(times)
     j_ours = np.array([objective(a, e, cfg.beta) for a, e in zip(actions, ours)])
     result: dict = {
+        "cpu_count": os.cpu_count(),
+        "load_avg_1min": os.getloadavg()[0],  # other processes on the machine slow every timing down
         "num": cfg.num,
         "length": cfg.length,
         "dim": cfg.dim,
@@ -217,7 +220,8 @@ def run(cfg: Config) -> dict:
 def format_table(r: dict) -> str:
     lines = [
         f"synthetic set: {r['num']} trajectories x {r['length']} steps x {r['dim']}-d actions, beta={r['beta']}, "
-        f"min_size={r['min_size']}, noise std {r['noise_levels']}",
+        f"min_size={r['min_size']}, noise std {r['noise_levels']}; {r['cpu_count']} CPUs, 1-min load average "
+        f"{r['load_avg_1min']:.2f} before timing",
         f"ours (exact batched DP): {r['ours_seconds_all']:.3f} s for the whole set (median of "
         f"{len(r['ours_seconds_runs'])}: {', '.join(f'{t:.3f}' for t in r['ours_seconds_runs'])}), "
         f"{r['ours_ms_per_traj']:.3f} ms/trajectory, {r['ours_segments_mean']:.2f} segments on average",

@@ -178,57 +178,47 @@ def _dp_group(arrays: list[np.ndarray], L: int, beta: float, min_size: int, summ
     B, p = len(arrays), arrays[0].shape[1]
     f64 = torch.float64
     lengths = np.array([len(a) for a in arrays])
-    v = torch.zeros((B, L, p), dtype=f64)
+    # Everything is laid out feature-major, (B, features, L+1): the cumulative sums run along contiguous memory
+    # and the matrices fed to the batched product need no transposed copies.
+    v = torch.zeros((B, p, L), dtype=f64)
     for b, a in enumerate(arrays):
-        v[b, : len(a)] = torch.from_numpy(a)  # zero padding after each trajectory's end
-    norms = torch.linalg.vector_norm(v, dim=2)
+        v[b, :, : len(a)] = torch.from_numpy(a.T)  # zero padding after each trajectory's end
+    norms = torch.linalg.vector_norm(v, dim=1)  # (B, L)
     nonzero = norms > ZERO_ACTION_RTOL * norms.amax(dim=1, keepdim=True)  # padding: 0 > 0 is False
-    u = v / torch.where(nonzero, norms, 1.0)[..., None] * nonzero[..., None]
+    u = v / torch.where(nonzero, norms, 1.0)[:, None] * nonzero[:, None]
 
-    def prefix(x):  # (B, L, ...) -> (B, L+1, ...) with a leading zero row
-        out = torch.zeros((B, L + 1, *x.shape[2:]), dtype=f64)
-        torch.cumsum(x, dim=1, out=out[:, 1:])
+    def prefix(x):  # (..., L) -> (..., L+1) with a leading zero
+        out = torch.zeros((*x.shape[:-1], L + 1), dtype=f64)
+        torch.cumsum(x, dim=-1, out=out[..., 1:])
         return out
 
-    # Centring the prefix sums (per trajectory, over its own N+1 rows) leaves every difference PS_j - PS_i
+    # Centring the prefix sums (per trajectory, over its own N+1 entries) leaves every difference PS_j - PS_i
     # unchanged but shrinks the magnitudes that the inner-product expansion cancels, i.e. its rounding error.
     n1 = torch.from_numpy(lengths + 1).to(f64)[:, None, None]
-    valid = (torch.arange(L + 1)[None, :] < n1[:, :, 0])[..., None]
-    ps, pu = prefix(v), prefix(u)
-    ps -= (ps * valid).sum(dim=1, keepdim=True) / n1
-    pu -= (pu * valid).sum(dim=1, keepdim=True) / n1
-    pn, pz = prefix(norms), prefix(nonzero.to(f64))  # prefix sums of |v| and of the non-zero count
+    valid = torch.arange(L + 1)[None, None, :] < n1
+    ps, pu = prefix(v), prefix(u)  # (B, p, L+1)
+    ps -= (ps * valid).sum(dim=2, keepdim=True) / n1
+    pu -= (pu * valid).sum(dim=2, keepdim=True) / n1
+    pn, pz = prefix(norms), prefix(nonzero.to(f64))  # (B, L+1): prefix sums of |v| and of the non-zero count
 
-    ss = (ps * ps).sum(dim=2)  # |PS_i|^2
-    us = (pu * ps).sum(dim=2)  # PU_i . PS_i
-
-    def rows_of(*parts, transpose=False):  # (B, L+1, k) / (B, L+1) parts side by side: (B, L+1, sum k)
-        parts = [x if x.dim() == 3 else x[..., None] for x in parts]
-        k = sum(x.shape[2] for x in parts)
-        out = torch.empty((B, k, L + 1) if transpose else (B, L + 1, k), dtype=f64)
-        c = 0
-        for x in parts:  # writing straight into the (transposed) layout saves a copy
-            (out[:, c : c + x.shape[2]] if transpose else out[..., c : c + x.shape[2]]).copy_(
-                x.transpose(1, 2) if transpose else x
-            )
-            c += x.shape[2]
-        return out
-
+    ss = (ps * ps).sum(dim=1)  # |PS_i|^2
+    us = (pu * ps).sum(dim=1)  # PU_i . PS_i
     one = torch.ones((B, L + 1), dtype=f64)
-    # Row i of X times row j of Y gives, for the segment (i, j]:
+
+    def stack(*parts):  # (B, k, L+1) / (B, L+1) parts -> (B, sum k, L+1)
+        return torch.cat([x if x.dim() == 3 else x[:, None] for x in parts], dim=1)
+
+    # Column i of X times column j of Y gives, for the segment (i, j]:
     #   |S|^2 = |PS_i|^2 + |PS_j|^2 - 2 PS_i.PS_j        U.S = PU_i.PS_i + PU_j.PS_j - PU_i.PS_j - PS_i.PU_j
-    # X is stored transposed, (B, k, L+1), which is what the batched matrix product reads fastest.
-    xs = rows_of(ps, ss, one, transpose=True)
-    ys = rows_of(-2 * ps, one, ss)
-    xu = rows_of(pu, ps, us, one, transpose=True)
-    yu = rows_of(-ps, -pu, one, us)
+    xs, ys = stack(ps, ss, one), stack(-2 * ps, one, ss)
+    xu, yu = stack(pu, ps, us, one), stack(-ps, -pu, one, us)
     # Zero mean (the convention's branch) when |S|^2 <= tol^2 (PN_j - PN_i)^2 + noise (|PS_i|^2 + |PS_j|^2), the
     # last term covering the rounding of the expansion itself. The fast path below runs whenever every
     # candidate's |S|^2 exceeds this per-trajectory upper bound of the threshold (the usual case).
     t2, e = ZERO_MEAN_RTOL**2, _NOISE
     thr = t2 * pn[:, -1] ** 2 + 2 * e * ss.amax(dim=1)
     zm = (1 - e) * ss - t2 * pn**2
-    zero_rows = lambda: (rows_of(ps, zm, one, pn), rows_of(-2 * ps, one, zm, 2 * t2 * pn))  # noqa: E731
+    zero_cols = lambda: (stack(ps, zm, one, pn), stack(-2 * ps, one, zm, 2 * t2 * pn))  # noqa: E731
     xz = yz = None  # X_i . Y_j = |S|^2 - threshold (<= 0: zero mean); built only if needed
 
     inv_n = 1.0 / torch.arange(L, 0, -1, dtype=f64)  # inv_n[L - j + i] = 1 / (j - i)
@@ -243,8 +233,8 @@ def _dp_group(arrays: list[np.ndarray], L: int, beta: float, min_size: int, summ
         j1 = min(L + 1, j0 + width)
         rows = j1 - min_size  # predecessors i <= j - min_size
         # (B, w, rows) blocks: entry [b, j - j0, i] is the quantity for segment (i, j]
-        s2 = torch.bmm(ys[:, j0:j1], xs[:, :, :rows])
-        dot = torch.bmm(yu[:, j0:j1], xu[:, :, :rows])
+        s2 = torch.bmm(ys[:, :, j0:j1].transpose(1, 2), xs[:, :, :rows])
+        dot = torch.bmm(yu[:, :, j0:j1].transpose(1, 2), xu[:, :, :rows])
         # the last `width` predecessors include i > j - min_size (even i = j, |S| = 0): keep them out of the check
         tri = torch.arange(rows - (j1 - j0), rows)[None, :] > torch.arange(j0, j1)[:, None] - min_size
         s2[:, :, rows - (j1 - j0) :].masked_fill_(tri, math.inf)
@@ -260,11 +250,11 @@ def _dp_group(arrays: list[np.ndarray], L: int, beta: float, min_size: int, summ
                 H[:, j] += beta + (0.0 if summed else 1.0)  # F[j] + off[j]
             continue
         if xz is None:
-            xz, yz = zero_rows()
+            xz, yz = zero_cols()
         for j in range(j0, j1):  # some segment may have a zero mean: apply the convention where it does
             r, w = j - min_size + 1, j - j0
             inv = inv_n[L - j : L - j + r]
-            zero = torch.bmm(xz[:, :r], yz[:, j, :, None])[..., 0] <= 0
+            zero = torch.bmm(yz[:, :, j : j + 1].transpose(1, 2), xz[:, :, :r])[:, 0] <= 0
             cost = (1.0 - dot[:, w, :r] * torch.rsqrt(s2[:, w, :r].clamp_min(1e-300)) * inv).clamp_(0.0, 2.0)
             cost = torch.where(zero, (pz[:, j : j + 1] - pz[:, :r]) * inv, cost)  # C = nnz / n
             if summed:
