@@ -229,12 +229,17 @@ def _dp_group(arrays: list[np.ndarray], L: int, beta: float, min_size: int, summ
     H[:, 0] = off[0]
     arg = torch.zeros((B, L + 1), dtype=torch.int64)
     width = max(1, min(_WIDTH, _BLOCK_ELEMS // (B * (L + 1))))
+    # Scratch buffers reused by every block and column: fresh multi-MB allocations would be page-faulted in on
+    # each call (glibc maps large blocks anew), which doubled the time of a first call.
+    buf_s2, buf_dot = torch.empty(B * width * L, dtype=f64), torch.empty(B * width * L, dtype=f64)
+    buf_cand = torch.empty(B * L, dtype=f64)
     for j0 in range(min_size, L + 1, width):
         j1 = min(L + 1, j0 + width)
         rows = j1 - min_size  # predecessors i <= j - min_size
         # (B, w, rows) blocks: entry [b, j - j0, i] is the quantity for segment (i, j]
-        s2 = torch.bmm(ys[:, :, j0:j1].transpose(1, 2), xs[:, :, :rows])
-        dot = torch.bmm(yu[:, :, j0:j1].transpose(1, 2), xu[:, :, :rows])
+        shape = (B, j1 - j0, rows)
+        s2 = torch.bmm(ys[:, :, j0:j1].transpose(1, 2), xs[:, :, :rows], out=buf_s2[: math.prod(shape)].view(shape))
+        dot = torch.bmm(yu[:, :, j0:j1].transpose(1, 2), xu[:, :, :rows], out=buf_dot[: math.prod(shape)].view(shape))
         # the last `width` predecessors include i > j - min_size (even i = j, |S| = 0): keep them out of the check
         tri = torch.arange(rows - (j1 - j0), rows)[None, :] > torch.arange(j0, j1)[:, None] - min_size
         s2[:, :, rows - (j1 - j0) :].masked_fill_(tri, math.inf)
@@ -242,10 +247,11 @@ def _dp_group(arrays: list[np.ndarray], L: int, beta: float, min_size: int, summ
             q = s2.rsqrt_().mul_(dot)  # U.S / |S|
             for j in range(j0, j1):
                 r, w = j - min_size + 1, j - j0
+                cand = buf_cand[: B * r].view(B, r)
                 if summed:
-                    cand = torch.sub(H[:, :r], q[:, w, :r])
+                    torch.sub(H[:, :r], q[:, w, :r], out=cand)
                 else:
-                    cand = torch.addcmul(H[:, :r], q[:, w, :r], inv_n[L - j : L - j + r], value=-1.0)
+                    torch.addcmul(H[:, :r], q[:, w, :r], inv_n[L - j : L - j + r], value=-1.0, out=cand)
                 torch.min(cand, dim=1, out=(H[:, j], arg[:, j]))  # first minimum -> smallest i on exact ties
                 H[:, j] += beta + (0.0 if summed else 1.0)  # F[j] + off[j]
             continue
