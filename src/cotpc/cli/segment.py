@@ -62,7 +62,8 @@ def format_summary(path: Path, s: dict) -> str:
     ]
     if "precision" in s:
         lines.append(
-            f"privileged key_steps within +-{s['tol']} steps: precision {s['precision']:.3f}, recall {s['recall']:.3f}, "
+            f"privileged key_steps within +-{s['tol']} steps: precision {s['precision']:.3f}, "
+            f"recall {s['recall']:.3f}, "
             f"F1 {s['f1']:.3f} ({s['matched']} matched; {s['predicted']} discovered, {s['true']} true boundaries)"
         )
     lines.append("stored traj_<i>/subskill_ends (attributes: beta, min_size, method, cost)")

@@ -128,7 +128,9 @@ def discover(actions, beta: float, min_size: int = 1, cost: str = "mean-cosine")
     return discover_batch([actions], beta, min_size, cost)[0]
 
 
-def discover_batch(actions_list: Sequence, beta: float, min_size: int = 1, cost: str = "mean-cosine") -> list[np.ndarray]:
+def discover_batch(
+    actions_list: Sequence, beta: float, min_size: int = 1, cost: str = "mean-cosine"
+) -> list[np.ndarray]:
     """:func:`discover` for many trajectories at once (any lengths); same results, much faster.
 
     Trajectories are sorted by length and grouped, each group padded with zero actions to its longest member

@@ -71,7 +71,8 @@ def sweep(actions: Sequence[np.ndarray], key_steps: Sequence[np.ndarray] | None,
     for beta in betas:
         t0 = time.perf_counter()
         ends = discover_batch(actions, beta, min_size, cost)
-        rows.append({"cost": cost, "beta": float(beta), "seconds": time.perf_counter() - t0, **score(ends, key_steps, tol)})
+        seconds = time.perf_counter() - t0
+        rows.append({"cost": cost, "beta": float(beta), "seconds": seconds, **score(ends, key_steps, tol)})
     return rows
 
 

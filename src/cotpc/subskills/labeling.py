@@ -34,6 +34,7 @@ def label_file(
     seconds = time.perf_counter() - t0
     attrs = {"beta": float(beta), "min_size": int(min_size), "method": METHOD, "cost": cost}
     write_episode_datasets(path, "subskill_ends", {ep.episode_id: e for ep, e in zip(ts.episodes, ends)}, attrs)
-    keys = [ep.extras["key_steps"] for ep in ts.episodes] if all("key_steps" in ep.extras for ep in ts.episodes) else None
+    has_keys = all("key_steps" in ep.extras for ep in ts.episodes)
+    keys = [ep.extras["key_steps"] for ep in ts.episodes] if has_keys else None
     summary = {**attrs, "seconds": seconds, **score(ends, keys, tol)}
     return summary, ends
