@@ -78,7 +78,7 @@ def test_bf16_tracks_fp32(data, tmp_path):
     """bf16 autocast changes the numbers slightly but not the learning: the losses track each other."""
     vals = {}
     for bf16 in (False, True):
-        run = train(TrainConfig(data=data, out=tmp_path / f"bf16_{bf16}", iters=60, val_every=20, bf16=bf16,
+        run = train(TrainConfig(data=data, out=tmp_path / f"bf16_{bf16}", iters=40, val_every=20, bf16=bf16,
                                 **{k: v for k, v in TINY.items() if k != "val_every"}))
         vals[bf16] = json.loads((run / "config.json").read_text())["val"]["loss"]
     assert abs(vals[True] - vals[False]) < 0.1 * vals[False], vals
