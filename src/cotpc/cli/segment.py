@@ -66,6 +66,9 @@ def format_summary(path: Path, s: dict) -> str:
             f"recall {s['recall']:.3f}, "
             f"F1 {s['f1']:.3f} ({s['matched']} matched; {s['predicted']} discovered, {s['true']} true boundaries)"
         )
+    if "recall_per_key" in s:
+        lines.append("  found per key step (demos with a discovered boundary within tolerance): "
+                     + ", ".join(f"{x:.2f}" for x in s["recall_per_key"]))
     lines.append("stored traj_<i>/subskill_ends (attributes: beta, min_size, method, cost)")
     return "\n".join(lines)
 

@@ -61,6 +61,9 @@ def score(ends_list: Sequence[np.ndarray], key_steps: Sequence[np.ndarray] | Non
         r = matched / n_true if n_true else 0.0
         out.update(tol=tol, matched=matched, predicted=n_pred, true=n_true, precision=p, recall=r,
                    f1=2 * p * r / (p + r) if p + r else 0.0)
+        if len({len(k) for k in key_steps}) == 1:  # same key steps in every demo: which ones are found
+            hits = [[bool(np.any(np.abs(boundaries(e) - t) <= tol)) for t in k] for e, k in zip(ends_list, key_steps)]
+            out["recall_per_key"] = np.mean(hits, axis=0).tolist()  # (not one-to-one: a diagnostic)
     return out
 
 
