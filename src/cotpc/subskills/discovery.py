@@ -182,10 +182,11 @@ def _dp_group(arrays: list[np.ndarray], L: int, beta: float, min_size: int, summ
     lengths = np.array([len(a) for a in arrays])
     # Everything is laid out feature-major, (B, features, L+1): the cumulative sums run along contiguous memory
     # and the matrices fed to the batched product need no transposed copies.
-    v = torch.zeros((B, p, L), dtype=f64)
+    v_np = np.zeros((B, L, p))
     for b, a in enumerate(arrays):
-        v[b, :, : len(a)] = torch.from_numpy(a.T)  # zero padding after each trajectory's end
-    norms = torch.linalg.vector_norm(v, dim=1)  # (B, L)
+        v_np[b, : len(a)] = a  # zero padding after each trajectory's end
+    v = torch.from_numpy(v_np).transpose(1, 2).contiguous()  # (B, p, L)
+    norms = (v * v).sum(dim=1).sqrt_()  # (B, L)
     nonzero = norms > ZERO_ACTION_RTOL * norms.amax(dim=1, keepdim=True)  # padding: 0 > 0 is False
     u = v / torch.where(nonzero, norms, 1.0)[:, None] * nonzero[:, None]
 
