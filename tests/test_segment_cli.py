@@ -91,6 +91,9 @@ def test_bench_segment_small(capsys):
                 "--ruptures-num", "3", "--verify", "3", "--json"])
     r = json.loads(capsys.readouterr().out)
     assert r["verify"]["num"] == 3 and r["verify"]["equal"] == 3
-    lower = r["ruptures"]["lower_objective"]
-    assert lower["other"] == 0 and lower["ours"] + lower["equal"] == 3  # ruptures is never better
-    assert r["ours_seconds_all"] > 0 and r["ruptures"]["speedup_per_traj"] > 0
+    for impl in ("direct", "prefix"):
+        x = r["ruptures"]["cost_impl"][impl]
+        lower = x["lower_objective"]
+        assert lower["other"] == 0 and lower["ours"] + lower["equal"] == 3  # ruptures is never better
+        assert x["speedup_per_traj"] > 0
+    assert r["ours_seconds_all"] > 0
