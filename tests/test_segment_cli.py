@@ -61,6 +61,16 @@ def test_round_trip_and_replace(tmp_path, capsys):
     assert all("subskill_ends" in ep.extras for ep in loaded.episodes)
 
 
+def test_errors_are_messages(tmp_path):
+    h5, _ = make_file(tmp_path / "demos")
+    with pytest.raises(SystemExit, match="traj_0 has 20 actions, fewer than min_size=30"):
+        segment_main([str(h5), "--min-size", "30"], prog="cotpc segment")
+    with pytest.raises(SystemExit, match="no such trajectory file"):
+        segment_main([str(tmp_path / "missing.h5")], prog="cotpc segment")
+    with h5py.File(h5, "r") as f:
+        assert not any("subskill_ends" in f[k] for k in f)  # nothing written on failure
+
+
 def test_maze_defaults_key_steps_and_figures(tmp_path, capsys):
     from cotpc.subskills import MAZE_DEFAULT_BETA, MAZE_DEFAULT_COST
 

@@ -119,4 +119,8 @@ def run(cfg: Config) -> dict:
 
 
 def main(argv: list[str], prog: str = "cotpc segment") -> None:
-    run(tyro.cli(Config, args=argv, prog=prog))
+    cfg = tyro.cli(Config, args=argv, prog=prog)
+    try:
+        run(cfg)
+    except ValueError as e:  # bad file (TrajectoryFormatError) or parameters: a message, not a traceback
+        raise SystemExit(f"{prog}: {e}") from None

@@ -158,7 +158,7 @@ def discover_batch(
     # One single-threaded worker per core, each on whole groups. Torch's own intra-op threads would have to meet
     # at a barrier after each of the thousands of small per-column ops: fine on an idle machine, but when another
     # process holds a core, every barrier waits for a scheduler slice and a 0.3 s job takes 20 s.
-    workers = max(1, min(len(groups), torch.get_num_threads()))
+    workers = max(1, min(len(groups), torch.get_num_threads(), 8))  # beyond ~8 the GIL is the bottleneck
     prev = torch.get_num_threads()
     torch.set_num_threads(1)
     try:

@@ -29,6 +29,9 @@ def label_file(
     ``trajectories`` may pass the already loaded file to avoid reading it twice.
     """
     ts = load_trajectories(path) if trajectories is None else trajectories
+    for ep in ts.episodes:
+        if ep.num_steps < min_size:
+            raise ValueError(f"{path}: traj_{ep.episode_id} has {ep.num_steps} actions, fewer than min_size={min_size}")
     t0 = time.perf_counter()
     ends = discover_batch([ep.actions for ep in ts.episodes], beta, min_size, cost)
     seconds = time.perf_counter() - t0
