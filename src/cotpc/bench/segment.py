@@ -236,7 +236,10 @@ def run(cfg: Config) -> dict:
                 "ours_segments_mean": float(np.mean([len(ours[idx[i]]) for i in sel])) if sel else None,
                 "ruptures_segments_mean": float(np.mean([len(rpt_ends[i]) for i in sel])) if sel else None,
             }
+        import ruptures
+
         result["ruptures"] = {
+            "version": ruptures.__version__,
             "num": len(idx),
             "cost_impl": timing,
             "lower_objective": {v: verdicts.count(v) for v in ("equal", "ours", "other")},
