@@ -18,7 +18,7 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/cotpc demos maze --out runs/quick/demos --train 400 --test 100 --seed 0
+	$(VENV)/bin/cotpc reproduce maze --quick --out runs/quick
 
 test: $(STAMP)
 	$(PY) -m pytest

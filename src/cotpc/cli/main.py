@@ -14,6 +14,7 @@ VERBS: dict[str, tuple[str, str]] = {
     "train": ("cotpc.cli.train", "Train a policy (bc, dt, bet, cotpc or an ablation) on a demonstration file."),
     "eval": ("cotpc.cli.eval", "Roll a trained policy out on seen or unseen configs; success rate with a 95% CI."),
     "segment": ("cotpc.cli.segment", "Discover subskills (exact DP) and store traj_<i>/subskill_ends in a trajectory file."),
+    "reproduce": ("cotpc.cli.reproduce", "The whole study in one command: demos, subskills, training, evaluation, report."),
     "bench": ("cotpc.cli.bench", "Micro-benchmarks (segment, ...): timings and quality against reference tools."),
 }
 

@@ -1,0 +1,237 @@
+"""``cotpc reproduce maze``: demos -> subskills -> training of every policy and seed -> evaluation -> report.
+
+Every step writes into ``OUT`` and is skipped when its output is already complete, so an interrupted run picks up
+where it stopped (training resumes from its last checkpoint). Checkpoints are the final weights of a fixed
+schedule; nothing is ever selected on evaluation success.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from cotpc.envs.moving_maze import HORIZON
+
+# The paper's Table 1 (Moving Maze, unseen configs, success %). Its ablations (Table 4) are on ManiSkill2 only.
+PAPER_UNSEEN = {"bc": 9.0, "dt": 23.0, "bet": 33.0, "cotpc": 44.0}
+BASELINES = ("bc", "dt", "bet", "cotpc")
+ABLATIONS = ("only-last", "only-next", "random", "vanilla", "o-shared", "swapped", "bet-prompt", "no-rand-mask", "decoupled")
+
+
+@dataclass
+class ReproduceSettings:
+    out: Path
+    seeds: int
+    iters: int
+    policies: tuple[str, ...]
+    ablations: tuple[str, ...]
+    beta: float
+    cost: str = "sum-cosine"
+    train_demos: int = 400
+    test_demos: int = 100
+    demo_seed: int = 0
+    workers: int = 2
+    extra_train_args: dict = field(default_factory=dict)
+
+
+def _stats(rates: list[float]) -> dict:
+    a = np.array(rates, dtype=float)
+    return {"mean": float(a.mean()), "std": float(a.std(ddof=0)), "best": float(a.max()), "runs": [float(r) for r in a]}
+
+
+def run(s: ReproduceSettings) -> dict:
+    from cotpc import load_policy
+    from cotpc.cli.demos import MazeDemos, run_maze
+    from cotpc.evaluation.maze import evaluate
+    from cotpc.subskills.labeling import label_file
+    from cotpc.training.train import TrainConfig, train
+
+    t_start = time.perf_counter()
+    out = Path(s.out)
+    demos = out / "demos"
+    # 1. demos (regenerated only if missing)
+    if not ((demos / "train.h5").exists() and (demos / "test.h5").exists()):
+        print(f"[1/5] demos -> {demos}", flush=True)
+        run_maze(MazeDemos(out=demos, train=s.train_demos, test=s.test_demos, seed=s.demo_seed, workers=s.workers))
+    # 2. unsupervised subskills on the training demos (cheap: always re-labelled with this beta)
+    print(f"[2/5] subskill discovery, {s.cost} cost, beta={s.beta}", flush=True)
+    seg, _ = label_file(demos / "train.h5", beta=s.beta, min_size=1, cost=s.cost)
+    # 3. training, 4. evaluation
+    results: dict = {}
+    timings: dict = {}
+    names = list(s.policies) + [a for a in s.ablations if a not in s.policies]
+    for name in names:
+        seeds = range(s.seeds) if name in s.policies else range(1)  # ablations: one seed each
+        per_split: dict = {"seen": [], "unseen": []}
+        transitions: dict = {"seen": [], "unseen": []}
+        for seed in seeds:
+            run_dir = out / "runs" / name / f"seed{seed}"
+            t0 = time.perf_counter()
+            if not _finished(run_dir, s.iters):
+                print(f"[3/5] train {name} seed {seed} ({s.iters} iters) -> {run_dir}", flush=True)
+                cfg = TrainConfig(
+                    data=demos / "train.h5",
+                    policy=name,
+                    out=run_dir,
+                    iters=s.iters,
+                    seed=seed,
+                    resume=(run_dir / "training_state.pt").exists(),
+                    progress=sys.stderr.isatty(),
+                    **s.extra_train_args,
+                )
+                train(cfg)
+            timings[f"{name}/seed{seed}"] = round(time.perf_counter() - t0, 1)
+            policy = load_policy(run_dir)
+            for split in ("seen", "unseen"):
+                video = out / "videos" / name if (split == "unseen" and seed == 0) else None
+                r = evaluate(policy, demos, split, video_dir=video, num_videos=2)
+                r.to_json(run_dir / f"eval_{split}.json")
+                per_split[split].append(100 * r.success_rate)
+                transitions[split].append(float(r.region_transitions.mean()))
+            print(
+                f"[4/5] {name} seed {seed}: seen {per_split['seen'][-1]:.1f}%  unseen {per_split['unseen'][-1]:.1f}%",
+                flush=True,
+            )
+        results[name] = {
+            split: {**_stats(per_split[split]), "region_transitions": float(np.mean(transitions[split]))}
+            for split in ("seen", "unseen")
+        }
+    import torch
+
+    results["meta"] = {
+        "command": " ".join(["cotpc"] + sys.argv[1:]) if sys.argv and "cotpc" in sys.argv[0] else None,
+        "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(s).items()},
+        "ablations": [a for a in s.ablations if a not in s.policies],
+        "subskills": seg,
+        "versions": {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__},
+        "hardware": {"machine": platform.machine(), "processor": platform.processor(), "cpus": _cpu_count()},
+        "wall_seconds": round(time.perf_counter() - t_start, 1),
+        "train_seconds": timings,
+        "horizon": HORIZON,
+        "success_unit": "percent of episodes",
+        "checkpoint_selection": "final weights of a fixed schedule (no selection on evaluation success)",
+    }
+    (out / "results.json").write_text(json.dumps(results, indent=1))
+    print("[5/5] report", flush=True)
+    write_report(results, out)
+    return results
+
+
+def _cpu_count() -> int:
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def _finished(run_dir: Path, iters: int) -> bool:
+    cfg = run_dir / "config.json"
+    if not cfg.exists():
+        return False
+    info = json.loads(cfg.read_text())
+    return info.get("step") == iters and info.get("train", {}).get("iters") == iters
+
+
+def write_report(results: dict, out: Path) -> Path:
+    """``report.md`` with the results tables, learning curves and success bars."""
+    meta = results["meta"]
+    s = meta["settings"]
+    policies = [p for p in results if p != "meta" and p not in meta["ablations"]]
+    lines = [
+        "# Moving Maze results",
+        "",
+        f"Command: `{meta.get('command') or 'cotpc reproduce maze'}`  ",
+        f"{s['train_demos']} training demos (seen configs), {s['test_demos']} test demos (unseen configs), "
+        f"subskills: {s['cost']} cost, beta {s['beta']}, {s['iters']} training iterations per run, {s['seeds']} seed(s) per policy, "
+        f"horizon {meta['horizon']}.  ",
+        f"Checkpoints: {meta['checkpoint_selection']}.  ",
+        f"Wall time {meta['wall_seconds'] / 60:.1f} min on {meta['hardware']['cpus']} CPU(s) "
+        f"({meta['hardware']['machine']}); torch {meta['versions']['torch']}, numpy {meta['versions']['numpy']}.",
+        "",
+        "Success rate (%): mean ± std over seeds, best seed in brackets; region transitions: mean of 5.",
+        "",
+        "| policy | seen | unseen | unseen transitions | paper unseen |",
+        "|---|---|---|---|---|",
+    ]
+
+    def cell(r):
+        return f"{r['mean']:.1f} ± {r['std']:.1f} [{r['best']:.1f}]"
+
+    for p in policies:
+        r = results[p]
+        lines.append(
+            f"| {p} | {cell(r['seen'])} | {cell(r['unseen'])} | {r['unseen']['region_transitions']:.2f} | "
+            f"{PAPER_UNSEEN.get(p, '–')} |"
+        )
+    if meta["ablations"]:
+        lines += ["", "## CoTPC ablations (paper Table 4 presets, one seed each)", "",
+                  "| preset | seen | unseen | unseen transitions |", "|---|---|---|---|"]
+        for a in meta["ablations"]:
+            r = results[a]
+            lines.append(f"| {a} | {r['seen']['mean']:.1f} | {r['unseen']['mean']:.1f} | "
+                         f"{r['unseen']['region_transitions']:.2f} |")
+    figures = _plots(results, out, policies + list(meta["ablations"]))
+    lines += ["", "## Figures", ""] + [f"![{f.stem}]({f.name})" for f in figures]
+    videos = sorted((out / "videos").glob("*/*.gif")) if (out / "videos").exists() else []
+    if videos:
+        lines += ["", "Videos of unseen rollouts (seed 0 of each policy): " + ", ".join(
+            f"[{v.parent.name}/{v.name}](videos/{v.parent.name}/{v.name})" for v in videos)]
+    path = out / "report.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _plots(results: dict, out: Path, names: list[str]) -> list[Path]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = []
+    # Success bars
+    fig, ax = plt.subplots(figsize=(1.0 + 0.9 * len(names), 3.2))
+    x = np.arange(len(names))
+    for k, split in enumerate(("seen", "unseen")):
+        means = [results[n][split]["mean"] for n in names]
+        stds = [results[n][split]["std"] for n in names]
+        ax.bar(x + (k - 0.5) * 0.38, means, 0.38, yerr=stds, label=split, capsize=2)
+    ax.set_xticks(x, names, rotation=30, ha="right", fontsize=8)
+    ax.set_ylabel("success rate (%)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    paths.append(out / "success.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+    # Learning curves: validation action loss of seed 0 of each policy (from TensorBoard logs)
+    fig, ax = plt.subplots(figsize=(5.5, 3.2))
+    for n in names:
+        steps, values = _scalar(out / "runs" / n / "seed0" / "tb", "val/bc")
+        if steps:
+            ax.plot(steps, values, label=n)
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("validation action loss")
+    ax.set_yscale("log")
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    paths.append(out / "learning_curves.png")
+    fig.savefig(paths[-1], dpi=110)
+    plt.close(fig)
+    return paths
+
+
+def _scalar(logdir: Path, tag: str) -> tuple[list[int], list[float]]:
+    if not logdir.exists():
+        return [], []
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(logdir))
+    acc.Reload()
+    if tag not in acc.Tags().get("scalars", []):
+        return [], []
+    events = acc.Scalars(tag)
+    return [e.step for e in events], [e.value for e in events]

@@ -1,0 +1,35 @@
+"""The Moving Maze study end to end, in a form small enough for CI."""
+
+import json
+
+from cotpc.cli.main import main as cotpc_main
+
+
+def test_reproduce_runs_end_to_end_and_resumes(tmp_path, capsys):
+    out = tmp_path / "study"
+    argv = ["reproduce", "maze", "--quick", "--out", str(out), "--iters", "6", "--batch-size", "16",
+            "--train-demos", "30", "--test-demos", "4", "--policies", "bc", "cotpc", "--ablations", "vanilla"]
+    cotpc_main(argv)
+    results = json.loads((out / "results.json").read_text())
+    for name in ("bc", "cotpc", "vanilla"):
+        for split, n in (("seen", 30), ("unseen", 4)):
+            r = results[name][split]
+            assert {"mean", "std", "best", "runs"} <= set(r)
+            assert len(r["runs"]) == 1 and 0.0 <= r["mean"] <= 100.0
+            # The rate is a count out of the split's episodes.
+            assert abs(r["mean"] * n / 100 - round(r["mean"] * n / 100)) < 1e-9
+            episodes = json.loads((out / "runs" / name / "seed0" / f"eval_{split}.json").read_text())["episodes"]
+            assert len(episodes) == n
+    assert results["meta"]["ablations"] == ["vanilla"]
+    assert results["meta"]["settings"]["iters"] == 6
+    report = (out / "report.md").read_text()
+    assert "| cotpc |" in report and "| vanilla |" in report
+    assert (out / "success.png").exists() and (out / "learning_curves.png").exists()
+    assert list((out / "videos" / "cotpc").glob("*.gif"))
+    printed = capsys.readouterr().out
+    assert "report:" in printed
+
+    # A second call reuses the finished runs instead of training again.
+    weights = (out / "runs" / "cotpc" / "seed0" / "model.safetensors").stat().st_mtime_ns
+    cotpc_main(argv)
+    assert (out / "runs" / "cotpc" / "seed0" / "model.safetensors").stat().st_mtime_ns == weights
