@@ -147,7 +147,8 @@ def write_report(results: dict, out: Path) -> Path:
         "",
         f"Command: `{meta.get('command') or 'cotpc reproduce maze'}`  ",
         f"{s['train_demos']} training demos (seen configs), {s['test_demos']} test demos (unseen configs), "
-        f"subskills: {s['cost']} cost, beta {s['beta']}, {s['iters']} training iterations per run, {s['seeds']} seed(s) per policy, "
+        f"subskills: {s['cost']} cost, beta {s['beta']}, {s['iters']} training iterations per run at batch "
+        f"{s['extra_train_args'].get('batch_size') or 'default (256; bc 32)'}, {s['seeds']} seed(s) per policy, "
         f"horizon {meta['horizon']}.  ",
         f"Checkpoints: {meta['checkpoint_selection']}.  ",
         f"Wall time {meta['wall_seconds'] / 60:.1f} min on {meta['hardware']['cpus']} CPU(s) "
