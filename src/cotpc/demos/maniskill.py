@@ -1,0 +1,293 @@
+"""ManiSkill3 demonstrations from the official motion planners, converted to state observations.
+
+For each seed of a split (in order, from :data:`cotpc.envs.maniskill.SEEDS`):
+
+1. ManiSkill3's motion-planning solution for the task (``mani_skill.examples.motionplanning.panda``) drives an
+   environment in ``pd_joint_pos`` (what the planners output), headless; a seed whose plan fails or does not end
+   in success is skipped (recorded in the JSON as failed).
+2. The ``pd_joint_pos`` actions are converted to ``pd_joint_delta_pos`` (or ``pd_ee_delta_pose``) by ManiSkill's
+   own converter (``mani_skill.trajectory.utils.actions.conversion.from_pd_joint_pos``, what
+   ``python -m mani_skill.trajectory.replay_trajectory -c ...`` runs), stepping an environment with state
+   observations from the same ``reset(seed)``; its observations, actions and per-step success are recorded.
+   Only conversions that end in success are kept.
+
+The demo set of a split is therefore the first ``num`` seeds of its range (from ``offset``) that both steps
+solve: the same for any ``--procs`` and after any interruption. Progress is saved every few demos in
+``OUT/<split>-partial.{h5,json}`` and a re-run continues from there (or extends a finished ``OUT/<split>.h5``).
+"""
+
+from __future__ import annotations
+
+import collections
+import multiprocessing as mp
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cotpc.data.trajectories import Episode, TrajectoryFormatError, TrajectorySet, load_trajectories, save_trajectories
+from cotpc.envs.maniskill import CONTROL_MODES, HORIZONS, SEEDS
+
+PLAN_CONTROL_MODE = "pd_joint_pos"
+PLAN_STEP_LIMIT = 1000  # no time limit interferes with planning or conversion (planner demos are ~100-300 steps)
+
+
+def planner_solutions() -> dict:
+    """ManiSkill3's motion-planning solutions, by env id."""
+    from mani_skill.examples.motionplanning.panda.run import MP_SOLUTIONS
+
+    return MP_SOLUTIONS
+
+
+class _Worker:
+    """One process's environments (built once): planner env, original-mode env and target env for conversion."""
+
+    def __init__(self, env_id: str, control_mode: str):
+        import gymnasium as gym
+
+        from cotpc.envs.maniskill import flat_obs, make_env
+
+        class Recorder(gym.Wrapper):
+            """Records the actions passed to step(), the flat observations and info['success'] since reset()."""
+
+            def __init__(self, env, record_obs: bool):
+                super().__init__(env)
+                self.record_obs = record_obs
+
+            def reset(self, **kwargs):
+                obs, info = self.env.reset(**kwargs)
+                self.obs, self.actions, self.success = [flat_obs(obs)[0]] if self.record_obs else [], [], []
+                return obs, info
+
+            def step(self, action):
+                obs, reward, terminated, truncated, info = self.env.step(action)
+                a = action.detach().cpu().numpy() if hasattr(action, "detach") else np.asarray(action)
+                self.actions.append(np.asarray(a, dtype=np.float32).reshape(-1))
+                if self.record_obs:
+                    self.obs.append(flat_obs(obs)[0])
+                self.success.append(bool(np.asarray(_cpu(info["success"])).reshape(-1)[0]))
+                return obs, reward, terminated, truncated, info
+
+        solutions = planner_solutions()
+        if env_id not in solutions:
+            raise ValueError(f"ManiSkill3 has no motion-planning solution for {env_id}; choose from {sorted(solutions)}")
+        self.env_id, self.control_mode = env_id, control_mode
+        self.solve = solutions[env_id]
+        self.plan_env = Recorder(make_env(env_id, PLAN_CONTROL_MODE, obs_mode="none", max_episode_steps=PLAN_STEP_LIMIT), False)
+        self.ori_env = make_env(env_id, PLAN_CONTROL_MODE, obs_mode="none", max_episode_steps=PLAN_STEP_LIMIT)
+        self.env = Recorder(make_env(env_id, control_mode, obs_mode="state", max_episode_steps=PLAN_STEP_LIMIT), True)
+
+    def run(self, seed: int) -> dict[str, Any]:
+        """Plan and convert one seed: a dict with ``ok`` and, when ok, obs/actions/success and timings."""
+        import contextlib
+        import io
+
+        from mani_skill.trajectory.utils.actions import conversion
+
+        seed = int(seed)
+        t0 = time.perf_counter()
+        try:
+            with contextlib.redirect_stdout(io.StringIO()):  # the planners print on failure
+                res = self.solve(self.plan_env, seed=seed, debug=False, vis=False)
+        except Exception as e:  # noqa: BLE001 - planner errors are a failed seed, like ManiSkill's run.py
+            return {"seed": seed, "ok": False, "reason": f"planner error: {e}"}
+        plan_ok = res != -1 and bool(self.plan_env.success and self.plan_env.success[-1])
+        t1 = time.perf_counter()
+        if not plan_ok:
+            return {"seed": seed, "ok": False, "reason": "planner failed", "plan_s": t1 - t0}
+        plan_actions = np.stack(self.plan_env.actions)
+        self.ori_env.reset(seed=seed)
+        self.env.reset(seed=seed)
+        try:
+            conversion.from_pd_joint_pos(self.control_mode, plan_actions, self.ori_env, self.env)
+        except Exception as e:  # noqa: BLE001
+            return {"seed": seed, "ok": False, "reason": f"conversion error: {e}", "plan_s": t1 - t0}
+        t2 = time.perf_counter()
+        if not self.env.success or not self.env.success[-1]:
+            return {"seed": seed, "ok": False, "reason": "converted actions fail", "plan_s": t1 - t0}
+        return {
+            "seed": seed,
+            "ok": True,
+            "obs": np.stack(self.env.obs).astype(np.float32),
+            "actions": np.stack(self.env.actions).astype(np.float32),
+            "success": np.array(self.env.success, dtype=bool),
+            "plan_steps": len(plan_actions),
+            "plan_s": t1 - t0,
+            "convert_s": t2 - t1,
+        }
+
+
+def _cpu(x):
+    return x.detach().cpu().numpy() if hasattr(x, "detach") else x
+
+
+_WORKER: _Worker | None = None
+
+
+def _init_worker(env_id: str, control_mode: str, threads: int = 1) -> None:
+    global _WORKER
+    import torch
+
+    torch.set_num_threads(threads)
+    _WORKER = _Worker(env_id, control_mode)
+
+
+def _run_seed(seed: int) -> dict[str, Any]:
+    assert _WORKER is not None
+    return _WORKER.run(seed)
+
+
+def _generation_key(env_id: str, control_mode: str, split: str, offset: int) -> dict:
+    return {"env_id": env_id, "control_mode": control_mode, "split": split, "offset": offset}
+
+
+def _load_progress(paths: list[Path], key: dict) -> tuple[list[Episode], dict] | None:
+    """The saved progress with the most demos among ``paths`` made with the same generation key, if any."""
+    best = None
+    for path in paths:
+        if not path.with_suffix(".h5").exists():
+            continue
+        try:
+            data = load_trajectories(path, extras=())
+        except TrajectoryFormatError:
+            continue
+        gen = data.meta.get("cotpc_generation", {})
+        if {k: gen.get(k) for k in key} != key:
+            raise SystemExit(
+                f"{path}.h5 was generated with {({k: gen.get(k) for k in key})}, not {key}; "
+                "choose another --out or remove it"
+            )
+        if best is None or len(data) > len(best[0]):
+            best = (data.episodes, gen)
+    return best
+
+
+def _trajectory_set(episodes: list[Episode], env_id: str, control_mode: str, gen: dict) -> TrajectorySet:
+    env_info = {
+        "env_id": env_id,
+        "env_kwargs": {"obs_mode": "state", "control_mode": control_mode, "sim_backend": "physx_cpu",
+                       "render_mode": None},
+        "max_episode_steps": HORIZONS.get(env_id),
+    }
+    meta = {
+        "source_type": "motionplanning",
+        "source_desc": "ManiSkill3 official motion-planning solution (pd_joint_pos), converted with ManiSkill's "
+        f"action conversion to {control_mode}; state observations (cotpc demos maniskill)",
+        "cotpc_generation": gen,
+    }
+    return TrajectorySet(episodes=episodes, env_info=env_info, meta=meta)
+
+
+def generate_split(
+    env_id: str,
+    split: str,
+    num: int,
+    out: str | Path,
+    control_mode: str = "pd_joint_delta_pos",
+    procs: int = 1,
+    offset: int = 0,
+    max_attempts: int | None = None,
+    save_every: int = 25,
+    progress: bool = True,
+) -> Path:
+    """Generate ``num`` successful demos of ``split`` into ``OUT/<split>.{h5,json}`` (resuming saved progress)."""
+    from tqdm import tqdm
+
+    if control_mode not in CONTROL_MODES:
+        raise ValueError(f"control mode must be one of {CONTROL_MODES}, got {control_mode!r}")
+    out = Path(out)
+    final, partial = out / split, out / f"{split}-partial"
+    key = _generation_key(env_id, control_mode, split, offset)
+    lo, hi = SEEDS.range(split)
+    found = _load_progress([final, partial], key)
+    episodes, failed, next_seed, stats = [], [], lo + offset, {"plan_s": 0.0, "convert_s": 0.0}
+    if found:
+        episodes, gen = found
+        failed, next_seed = list(gen.get("failed_seeds", [])), int(gen["next_seed"])
+        stats = dict(gen.get("seconds", stats))
+    if found and found[1].get("complete") and len(episodes) == num:
+        print(f"{split}: {final}.h5 already holds {num} demos of {env_id} ({control_mode}); nothing to do")
+        return final.with_suffix(".h5")
+    if len(episodes) > num:  # asked for fewer than were made: keep the first num (the same as a fresh run's)
+        episodes = episodes[:num]
+        next_seed = int(episodes[-1].reset_kwargs["seed"]) + 1
+        failed = [s for s in failed if s < next_seed]
+    max_attempts = max_attempts if max_attempts is not None else 3 * num + 50
+    start = time.perf_counter()
+    last_save = [time.perf_counter(), len(episodes)]
+
+    def gen_info(done: bool) -> dict:
+        return {**key, "seed_range": [lo, hi], "next_seed": next_seed, "failed_seeds": failed,
+                "attempted": next_seed - lo - offset, "kept": len(episodes), "complete": done,
+                "seconds": {k: round(v, 2) for k, v in stats.items()}}
+
+    def save(path: Path, done: bool) -> None:
+        if episodes:
+            save_trajectories(path, _trajectory_set(episodes, env_id, control_mode, gen_info(done)))
+        last_save[:] = [time.perf_counter(), len(episodes)]
+
+    def accept(r: dict) -> None:
+        nonlocal next_seed
+        SEEDS.check(r["seed"], split)
+        next_seed = r["seed"] + 1
+        stats["plan_s"] += r.get("plan_s", 0.0)
+        stats["convert_s"] += r.get("convert_s", 0.0)
+        if r["ok"]:
+            episodes.append(Episode(
+                obs=r["obs"], actions=r["actions"], success=r["success"], episode_id=len(episodes),
+                reset_kwargs={"seed": r["seed"]}, control_mode=control_mode,
+            ))
+        else:
+            failed.append(r["seed"])
+        if len(episodes) - last_save[1] >= save_every or (time.perf_counter() - last_save[0] > 60 and episodes):
+            save(partial, False)
+
+    bar = tqdm(total=num, initial=len(episodes), desc=f"{env_id} {split}", unit="demo", disable=not progress,
+               dynamic_ncols=True)
+    pool = None
+    try:
+        if procs <= 1:
+            _init_worker(env_id, control_mode, threads=1)
+        else:
+            pool = mp.get_context("spawn").Pool(procs, initializer=_init_worker, initargs=(env_id, control_mode, 1))
+        pending: collections.deque = collections.deque()
+        seed_iter = iter(range(next_seed, hi))
+        while len(episodes) < num:
+            attempted = next_seed - lo - offset
+            if attempted >= max_attempts and not pending:
+                raise RuntimeError(
+                    f"{env_id} {split}: only {len(episodes)} of {num} demos after {attempted} seeds "
+                    f"(planner success too low); raise --max-attempts"
+                )
+            if pool is None:
+                r = _run_seed(next(seed_iter))
+            else:  # keep 2 seeds per process in flight; take results in seed order
+                while len(pending) < 2 * procs and attempted + len(pending) < max_attempts:
+                    pending.append(pool.apply_async(_run_seed, (next(seed_iter),)))
+                r = pending.popleft().get()
+            n_before = len(episodes)
+            accept(r)
+            bar.update(len(episodes) - n_before)
+            tried = next_seed - lo - offset
+            bar.set_postfix(planner_ok=f"{len(episodes) / max(tried, 1):.0%}", seed=str(next_seed - 1))
+        if pool is not None:
+            pool.terminate()  # drop seeds planned ahead but not needed
+            pool = None
+    except KeyboardInterrupt:
+        save(partial, False)
+        raise SystemExit(f"interrupted: {len(episodes)} demos saved in {partial}.h5; re-run the same command to resume")
+    finally:
+        bar.close()
+        if pool is not None:
+            pool.terminate()
+    save(final, True)
+    for suffix in (".h5", ".json"):
+        partial.with_suffix(suffix).unlink(missing_ok=True)
+    lengths = np.array([ep.num_steps for ep in episodes])
+    tried = next_seed - lo - offset
+    print(
+        f"{split}: {len(episodes)} demos of {env_id} ({control_mode}) -> {final}.h5 in {time.perf_counter() - start:.1f} s; "
+        f"{tried} seeds tried ({len(failed)} failed), steps mean {lengths.mean():.1f} min {lengths.min()} max {lengths.max()}"
+    )
+    return final.with_suffix(".h5")

@@ -1,0 +1,219 @@
+"""ManiSkill3 tasks (StackCube-v1, PegInsertionSide-v1, PickCube-v1, ...) with state observations, headless.
+
+Install with ``pip install -e '.[maniskill]'`` (``mani-skill==3.0.1`` with ``numpy<2``). Nothing in the rest of
+the package imports this module, so Moving Maze never needs ManiSkill.
+
+**Machines with no render device.** SAPIEN needs a Vulkan device to *construct* ``RenderMaterial`` and
+``RenderTexture2D`` objects, and ManiSkill's URDF/MJCF loaders and actor builders construct them even with
+``render_backend="none"``; without a device every environment fails to build with ``RuntimeError: failed to
+find a rendering device``. :func:`ensure_headless` probes for a device (by constructing a
+``sapien.render.RenderMaterial()``) and, **only when that fails**, replaces those two classes with inert
+stand-ins in the modules that hold them. Physics is untouched (rendering components are never added to a scene
+that cannot render), so the simulation is the same as on a machine with a device; where a device exists nothing
+is patched at all. Images (``obs_mode="rgb"``, videos) still need a real device.
+
+Seeds: ManiSkill3 draws a task's initial state (cube poses, and for PegInsertionSide also the peg and hole
+sizes) from ``reset(seed=...)``. Training demos use seeds from :data:`SEEDS` ``"train"`` and test demos from
+``"test"``; the two ranges are disjoint and checked wherever a seed is used (see :func:`check_seed`).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+# Tasks with an official ManiSkill3 motion-planning solution that need no asset download, and the evaluation
+# horizon for each: the paper's 200 for Stack Cube and Peg Insertion (ManiSkill3's registered limits, 50 and
+# 100, are shorter than the planner's own demos: about 107 and 151 steps).
+HORIZONS = {
+    "StackCube-v1": 200,
+    "PegInsertionSide-v1": 200,
+    "PickCube-v1": 200,
+    "PushCube-v1": 200,
+    "PullCube-v1": 200,
+    "LiftPegUpright-v1": 200,
+    "PlugCharger-v1": 200,
+    "StackPyramid-v1": 300,
+}
+CONTROL_MODES = ("pd_joint_delta_pos", "pd_ee_delta_pose")
+
+
+def is_maniskill_env(env_id: str | None) -> bool:
+    """True for ManiSkill3 task ids such as ``StackCube-v1`` (without importing mani_skill)."""
+    return bool(env_id) and env_id in HORIZONS
+
+
+@dataclass(frozen=True)
+class SeedRanges:
+    """Disjoint seed ranges per split, so a policy is never evaluated on 'unseen' seeds it was trained on.
+
+    The same mechanism as Moving Maze's ``SEED_RANGES``: ``seeds(split, num, offset)`` hands out consecutive
+    seeds of one split and ``check(seed, split)`` raises unless the seed belongs to that split.
+    """
+
+    ranges: dict[str, tuple[int, int]]
+
+    def __post_init__(self):
+        spans = sorted(self.ranges.values())
+        for (lo1, hi1), (lo2, _) in zip(spans, spans[1:]):
+            if hi1 > lo2:
+                raise ValueError(f"seed ranges overlap: {self.ranges}")
+
+    def range(self, split: str) -> tuple[int, int]:
+        if split not in self.ranges:
+            raise ValueError(f"unknown split {split!r}; expected one of {sorted(self.ranges)}")
+        return self.ranges[split]
+
+    def seeds(self, split: str, num: int, offset: int = 0) -> np.ndarray:
+        lo, hi = self.range(split)
+        if num < 0 or offset < 0 or lo + offset + num > hi:
+            raise ValueError(f"{num} seeds at offset {offset} do not fit the {split} range [{lo}, {hi})")
+        return np.arange(lo + offset, lo + offset + num)
+
+    def split_of(self, seed: int) -> str:
+        for split, (lo, hi) in self.ranges.items():
+            if lo <= seed < hi:
+                return split
+        raise ValueError(f"seed {seed} is outside every split range {self.ranges}")
+
+    def check(self, seed: int, split: str) -> None:
+        if self.split_of(int(seed)) != split:
+            raise ValueError(f"seed {seed} belongs to the {self.split_of(int(seed))} split, not {split}")
+
+
+# ManiSkill3's own examples and datasets use seeds from 0; our test seeds start far above any train seed.
+SEEDS = SeedRanges({"train": (0, 1_000_000), "val": (1_000_000, 2_000_000), "test": (2_000_000, 3_000_000)})
+check_seed = SEEDS.check
+
+
+_HEADLESS: bool | None = None  # None: not probed yet; True: the stand-ins are installed; False: a device exists
+
+
+class _InertRenderObject:
+    """Accepts any constructor arguments and attribute writes; stands in for SAPIEN render objects."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        self._attrs: dict[str, Any] = dict(kwargs)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        object.__setattr__(self, name, value)
+
+    def __getattr__(self, name: str) -> Any:  # only called for attributes never set
+        attrs = object.__getattribute__(self, "_attrs")
+        if name in attrs:
+            return attrs[name]
+        raise AttributeError(name)
+
+
+class InertRenderMaterial(_InertRenderObject):
+    """Stand-in for ``sapien.render.RenderMaterial`` on machines with no render device."""
+
+
+class InertRenderTexture2D(_InertRenderObject):
+    """Stand-in for ``sapien.render.RenderTexture2D`` on machines with no render device."""
+
+
+def has_render_device() -> bool:
+    """Whether SAPIEN finds a rendering (Vulkan) device: constructing a RenderMaterial needs one."""
+    import sapien
+
+    if _HEADLESS:  # already patched: the class in sapien.render is ours, ask the original
+        return False
+    try:
+        sapien.render.RenderMaterial()
+    except RuntimeError:
+        return False
+    return True
+
+
+def ensure_headless() -> bool:
+    """Make ManiSkill3 environments build on a machine with no render device; a no-op where one exists.
+
+    Returns True when the stand-ins were installed (no device), False when a device was found. Idempotent;
+    call it in every process before the first ``gym.make`` (:func:`make_env` does). Set ``COTPC_NO_HEADLESS=1``
+    to never patch (the environment then fails to build without a device, with SAPIEN's own error).
+    """
+    global _HEADLESS
+    if _HEADLESS is not None:
+        return _HEADLESS
+    if os.environ.get("COTPC_NO_HEADLESS") == "1" or has_render_device():
+        _HEADLESS = False
+        return False
+    import importlib
+
+    import sapien
+
+    targets = ["sapien.render", "sapien.pysapien.render", "sapien.wrapper.urdf_loader", "sapien.wrapper.renderer",
+               "mani_skill.utils.building._mjcf_loader"]
+    for name in targets:
+        module = importlib.import_module(name)
+        if hasattr(module, "RenderMaterial"):
+            module.RenderMaterial = InertRenderMaterial
+        if hasattr(module, "RenderTexture2D"):
+            module.RenderTexture2D = InertRenderTexture2D
+    assert sapien.render.RenderMaterial is InertRenderMaterial
+    _HEADLESS = True
+    return True
+
+
+def import_maniskill():
+    """Import mani_skill (registering its tasks) with a clear message when the extra is not installed."""
+    try:
+        import mani_skill.envs  # noqa: F401  (registers the tasks with gymnasium)
+    except ImportError as e:
+        raise SystemExit(
+            f"ManiSkill3 is not installed ({e}). Install the extra: pip install -e '.[maniskill]' "
+            "(mani-skill==3.0.1 needs numpy<2)"
+        ) from None
+    import numpy
+
+    if int(numpy.__version__.split(".")[0]) >= 2:
+        raise SystemExit(
+            f"numpy {numpy.__version__} is installed, but ManiSkill3's motion planner (mplib 0.1.1) crashes with "
+            "numpy 2; install 'numpy<2' (the [maniskill] extra pins it)"
+        )
+
+
+def make_env(
+    env_id: str,
+    control_mode: str = "pd_joint_delta_pos",
+    obs_mode: str = "state",
+    max_episode_steps: int | None = None,
+    num_envs: int = 1,
+    sim_backend: str = "physx_cpu",
+    **kwargs: Any,
+):
+    """``gym.make`` a ManiSkill3 task without rendering (headless-safe), with state observations by default.
+
+    ``max_episode_steps`` defaults to :data:`HORIZONS` (the paper's horizon), not ManiSkill's shorter limit.
+    ``sim_backend="physx_cuda"`` with ``num_envs=N`` runs N environments on the GPU in one process.
+    """
+    import gymnasium as gym
+
+    import_maniskill()
+    ensure_headless()
+    if max_episode_steps is None:
+        max_episode_steps = HORIZONS.get(env_id)
+    make_kwargs = dict(
+        obs_mode=obs_mode,
+        control_mode=control_mode,
+        sim_backend=sim_backend,
+        render_backend="none" if _HEADLESS else kwargs.pop("render_backend", "none"),
+        render_mode=kwargs.pop("render_mode", None),
+        num_envs=num_envs,
+        **kwargs,
+    )
+    if max_episode_steps is not None:
+        make_kwargs["max_episode_steps"] = max_episode_steps
+    return gym.make(env_id, **make_kwargs)
+
+
+def flat_obs(obs) -> np.ndarray:
+    """A state observation (torch tensor (B, q) or (q,)) as a float32 numpy array of shape (B, q)."""
+    if hasattr(obs, "detach"):
+        obs = obs.detach().cpu().numpy()
+    obs = np.asarray(obs, dtype=np.float32)
+    return obs[None] if obs.ndim == 1 else obs
