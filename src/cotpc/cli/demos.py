@@ -1,10 +1,11 @@
-"""``cotpc demos maze``: generate demonstrations in ManiSkill3's trajectory format."""
+"""``cotpc demos {maze,maniskill}``: generate demonstrations in ManiSkill3's trajectory format."""
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal, Optional
 
 import numpy as np
 import tyro
@@ -47,7 +48,55 @@ def run_maze(cfg: MazeDemos) -> dict[str, Path]:
     return paths
 
 
+@dataclass
+class ManiSkillDemos:
+    """ManiSkill3 demos (needs `pip install -e '.[maniskill]'`): the official motion planner runs headless, its
+    pd_joint_pos actions are converted by ManiSkill's converter to --control-mode with state observations, and
+    only demos that succeed after conversion are kept. Writes OUT/train.{h5,json} (seeds 0.., the 'seen' seeds)
+    and OUT/test.{h5,json} (seeds 2000000.., the 'unseen' seeds). Saves progress every few demos; re-running the
+    same command resumes (or extends a finished split to a larger --num)."""
+
+    env: str = "StackCube-v1"
+    """ManiSkill3 task with a motion-planning solution: StackCube-v1, PegInsertionSide-v1, PickCube-v1,
+    PushCube-v1, ... (the paper used 500 Stack Cube and 1000 Peg Insertion demos)."""
+    out: Path = Path("data/maniskill")
+    """Output directory."""
+    num: int = 500
+    """Number of (successful) training demos."""
+    test: int = 100
+    """Number of test demos, from the disjoint test seed range (their seeds are the 'unseen' evaluation set)."""
+    control_mode: Literal["pd_joint_delta_pos", "pd_ee_delta_pose"] = "pd_joint_delta_pos"
+    """Action space of the converted demos."""
+    procs: int = 1
+    """Processes planning and converting in parallel (the demos are identical for any number)."""
+    offset: int = 0
+    """Start this far into each split's seed range."""
+    max_attempts: Optional[int] = None
+    """Give up on a split after this many seeds (default 3 * N + 50)."""
+    progress: bool = True
+    """Show progress bars."""
+
+
+def run_maniskill(cfg: ManiSkillDemos) -> dict[str, Path]:
+    from cotpc.demos.maniskill import generate_split  # imports mani_skill only here
+    from cotpc.envs.maniskill import import_maniskill
+
+    import_maniskill()
+    start = time.perf_counter()
+    paths = {}
+    for split, num in (("train", cfg.num), ("test", cfg.test)):
+        if num > 0:
+            paths[split] = generate_split(
+                cfg.env, split, num, cfg.out, control_mode=cfg.control_mode, procs=cfg.procs, offset=cfg.offset,
+                max_attempts=cfg.max_attempts, progress=cfg.progress,
+            )
+    print(f"generated in {time.perf_counter() - start:.1f} s")
+    return paths
+
+
 def main(argv: list[str], prog: str) -> None:
-    cfg = tyro.extras.subcommand_cli_from_dict({"maze": MazeDemos}, args=argv, prog=prog)
+    cfg = tyro.extras.subcommand_cli_from_dict({"maze": MazeDemos, "maniskill": ManiSkillDemos}, args=argv, prog=prog)
     if isinstance(cfg, MazeDemos):
         run_maze(cfg)
+    elif isinstance(cfg, ManiSkillDemos):
+        run_maniskill(cfg)

@@ -87,6 +87,11 @@ class _Worker:
 
         seed = int(seed)
         t0 = time.perf_counter()
+        # Rebuild each scene first: PhysX (CPU) results in contact-rich steps depend on the scene's history, so
+        # without this a demo would depend on which seeds the same process ran before it (measured: actions
+        # differ by up to 3e-3). With it every demo is a pure function of its seed, for any --procs.
+        for env in (self.plan_env, self.ori_env, self.env):
+            env.reset(seed=seed, options={"reconfigure": True})
         try:
             with contextlib.redirect_stdout(io.StringIO()):  # the planners print on failure
                 res = self.solve(self.plan_env, seed=seed, debug=False, vis=False)
