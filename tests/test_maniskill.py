@@ -1,0 +1,173 @@
+"""ManiSkill3 support: headless physics, planner demos, conversion, segmentation, training and evaluation.
+
+The tests that need ManiSkill3 are skipped when it is not installed (`pip install -e '.[maniskill]'`); the
+seed-range tests run everywhere. Everything runs on the CPU simulator with no render device.
+"""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from cotpc.cli.main import main as cotpc_main
+from cotpc.envs.maniskill import SEEDS, SeedRanges, is_maniskill_env
+
+SKIP_REASON = "ManiSkill3 is not installed (pip install -e '.[maniskill]'; needs numpy<2)"
+
+
+def needs_maniskill():
+    pytest.importorskip("mani_skill", reason=SKIP_REASON)
+
+
+# ------------------------------------------------------------------ no ManiSkill needed
+
+
+def test_seed_ranges_are_disjoint_and_checked():
+    lo_train, hi_train = SEEDS.range("train")
+    lo_test, _ = SEEDS.range("test")
+    assert hi_train <= lo_test
+    assert list(SEEDS.seeds("test", 3, offset=5)) == [lo_test + 5, lo_test + 6, lo_test + 7]
+    SEEDS.check(lo_train, "train")
+    with pytest.raises(ValueError, match="belongs to the train split"):
+        SEEDS.check(lo_train, "test")
+    with pytest.raises(ValueError, match="do not fit"):
+        SEEDS.seeds("train", 10, offset=hi_train - 5)
+    with pytest.raises(ValueError, match="overlap"):
+        SeedRanges({"a": (0, 10), "b": (5, 20)})
+
+
+def test_task_ids():
+    assert is_maniskill_env("StackCube-v1") and is_maniskill_env("PegInsertionSide-v1")
+    assert not is_maniskill_env("cotpc/MovingMaze-v0") and not is_maniskill_env(None)
+
+
+def test_maze_commands_never_import_maniskill():
+    code = ("import sys; from cotpc.cli import demos, eval; import cotpc.envs, cotpc.evaluation.maze; "
+            "print('mani_skill' in sys.modules, 'sapien' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["False", "False"]
+
+
+# ------------------------------------------------------------------ ManiSkill3
+
+
+def test_headless_workaround_only_without_a_device_and_physics_is_deterministic():
+    needs_maniskill()
+    from cotpc.envs.maniskill import ensure_headless, flat_obs, make_env
+
+    patched = ensure_headless()
+    import sapien
+
+    # Patched exactly when no render device exists (on this CPU-only machine: patched).
+    assert patched == (sapien.render.RenderMaterial.__name__ == "InertRenderMaterial")
+    env = make_env("StackCube-v1", "pd_joint_delta_pos")
+    actions = np.random.default_rng(0).uniform(-1, 1, size=(60, 8)).astype(np.float32)
+
+    def roll(seed):
+        obs, _ = env.reset(seed=seed, options={"reconfigure": True})
+        out = [flat_obs(obs)]
+        for a in actions:
+            obs, *_ = env.step(a)
+            out.append(flat_obs(obs))
+        return np.concatenate(out)
+
+    a, b, c = roll(7), roll(8), roll(7)
+    assert a.shape == (61, 48) and np.isfinite(a).all()
+    assert np.array_equal(a, c)  # same seed and actions: bit-identical
+    assert not np.array_equal(a[0], b[0])  # the seed changes the initial state
+    assert np.abs(a[-1] - a[0]).max() > 1e-3  # the robot moved: physics runs
+    env.close()
+
+
+@pytest.fixture(scope="module")
+def stack_demos(tmp_path_factory):
+    needs_maniskill()
+    out = tmp_path_factory.mktemp("stackcube")
+    cotpc_main(["demos", "maniskill", "--env", "StackCube-v1", "--out", str(out), "--num", "2", "--test", "1",
+                "--no-progress"])
+    return out
+
+
+def test_demos_follow_the_trajectory_format_with_disjoint_seeds(stack_demos):
+    from cotpc.data import load_trajectories
+
+    for split, n in (("train", 2), ("test", 1)):
+        info = json.loads((stack_demos / f"{split}.json").read_text())
+        assert info["env_info"]["env_id"] == "StackCube-v1"
+        assert info["env_info"]["max_episode_steps"] == 200  # the paper's horizon
+        assert info["env_info"]["env_kwargs"]["control_mode"] == "pd_joint_delta_pos"
+        assert len(info["episodes"]) == n and info["cotpc_generation"]["complete"]
+        for record in info["episodes"]:
+            SEEDS.check(record["reset_kwargs"]["seed"], split)
+            assert record["control_mode"] == "pd_joint_delta_pos"
+        data = load_trajectories(stack_demos / f"{split}.h5")
+        assert data.obs_dim == 48 and data.action_dim == 8
+        for ep in data.episodes:
+            assert ep.success[-1]  # only demos that succeed after conversion are kept
+            assert np.abs(ep.actions).max() <= 1 + 1e-6  # normalised delta actions
+            assert 50 < ep.num_steps < 200
+
+
+def test_demos_replay_to_success_through_the_eval_path(stack_demos):
+    from cotpc.evaluation.maniskill import evaluate, replay_factory
+
+    result = evaluate(replay_factory(stack_demos / "train.h5"), stack_demos, "seen", progress=False, backend="cpu")
+    s = result.summary()
+    assert s["episodes"] == 2 and s["horizon"] == 200
+    assert s["success_once"] == 1.0  # deterministic: the converted actions succeed again from reset(seed)
+    assert s["success_once_ci95"][0] > 0.3
+    from cotpc.data import load_trajectories
+
+    firsts = [int(np.argmax(ep.success)) + 1 for ep in load_trajectories(stack_demos / "train.h5").episodes]
+    assert list(result.first_success) == firsts  # the same step as in the demo
+
+
+def test_resume_extends_a_split_with_the_same_demos(stack_demos, tmp_path):
+    import shutil
+
+    from cotpc.data import load_trajectories
+
+    out = tmp_path / "more"
+    out.mkdir()
+    for suffix in (".h5", ".json"):
+        shutil.copy(stack_demos / f"train{suffix}", out / f"train{suffix}")
+    cotpc_main(["demos", "maniskill", "--out", str(out), "--num", "3", "--test", "0", "--no-progress"])
+    old, new = load_trajectories(stack_demos / "train.h5"), load_trajectories(out / "train.h5")
+    assert len(new) == 3 and json.loads((out / "train.json").read_text())["cotpc_generation"]["attempted"] == 3
+    for a, b in zip(old.episodes, new.episodes):
+        assert a.reset_kwargs == b.reset_kwargs and np.array_equal(a.actions, b.actions)
+
+
+def test_segment_train_and_eval(stack_demos, tmp_path):
+    from cotpc.data import load_trajectories
+
+    train = stack_demos / "train.h5"
+    cotpc_main(["segment", str(train)])  # the paper's beta 0.05 (mean cosine) for non-maze data
+    for ep in load_trajectories(train).episodes:
+        ends = ep.extras["subskill_ends"]
+        assert ends[-1] == ep.num_steps - 1 and np.all(np.diff(ends) > 0)
+    run = tmp_path / "run"
+    cotpc_main(["train", "--data", str(train), "--policy", "cotpc", "--out", str(run), "--iters", "3",
+                "--batch-size", "8", "--d-model", "32", "--n-layers", "1", "--n-heads", "2", "--n-centres", "8"])
+    config = json.loads((run / "config.json").read_text())
+    assert config["dataset"]["env_id"] == "StackCube-v1"
+    out = tmp_path / "eval.json"
+    cotpc_main(["eval", str(run), "--split", "unseen", "--horizon", "15", "--backend", "cpu", "--out", str(out)])
+    result = json.loads(out.read_text())
+    s = result["summary"]
+    assert s["env_id"] == "StackCube-v1" and s["split"] == "unseen" and s["episodes"] == 1 and s["horizon"] == 15
+    assert set(result["episodes"][0]) == {"seed", "success_once", "success_at_end", "first_success_step"}
+    SEEDS.check(result["episodes"][0]["seed"], "test")
+
+
+def test_ee_delta_pose_conversion(tmp_path):
+    needs_maniskill()
+    from cotpc.data import load_trajectories
+
+    cotpc_main(["demos", "maniskill", "--env", "PickCube-v1", "--out", str(tmp_path), "--num", "1", "--test", "0",
+                "--control-mode", "pd_ee_delta_pose", "--no-progress"])
+    data = load_trajectories(tmp_path / "train.h5")
+    assert data.action_dim == 7 and data.episodes[0].success[-1]
+    assert data.episodes[0].control_mode == "pd_ee_delta_pose"
