@@ -15,13 +15,25 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e '.[dev]'
 	touch $(STAMP)
 
+# ManiSkill3 lives in its own environment: mani-skill 3.0.1 needs numpy<2, the core uses what pip picks.
+MS_VENV ?= .venv-ms
+MS_STAMP := $(MS_VENV)/.installed
+
+$(MS_STAMP): pyproject.toml
+	python3 -m venv $(MS_VENV)
+	$(MS_VENV)/bin/python -m pip install -q --upgrade pip
+	$(MS_VENV)/bin/python -m pip install -q torch==2.13.0
+	$(MS_VENV)/bin/python -m pip install -q -e '.[dev,maniskill]'
+	touch $(MS_STAMP)
+
 install: $(STAMP)
 
 demo: $(STAMP)
 	$(VENV)/bin/cotpc reproduce maze --quick --out runs/quick
 
-test: $(STAMP)
+test: $(STAMP) $(MS_STAMP)
 	$(PY) -m pytest
+	$(MS_VENV)/bin/python -m pytest tests/test_maniskill.py
 
 clean:
-	rm -rf $(VENV) runs
+	rm -rf $(VENV) $(MS_VENV) runs

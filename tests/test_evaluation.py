@@ -72,3 +72,13 @@ def test_wilson_interval():
     assert lo == 0.0 and 0.02 < hi < 0.05
     lo, hi = wilson_interval(50, 100)
     assert lo == pytest.approx(0.4038, abs=1e-3) and hi == pytest.approx(0.5962, abs=1e-3)
+
+
+def test_demos_also_succeed_when_gaps_are_deadly(demo_dir):
+    # The demonstrator never steps into a gap, so the rule changes nothing for it...
+    data = load_trajectories(demo_dir / "train.h5")
+    result = evaluate(ReplayPolicy([ep.actions for ep in data.episodes]), demo_dir, "seen", deadly_gaps=True)
+    assert result.success_rate == 1.0 and result.meta["fell"] == 0
+    # ...while a random walker falls.
+    result = evaluate(RandomPolicy(seed=0), demo_dir, "seen", deadly_gaps=True)
+    assert result.meta["fell"] > 0

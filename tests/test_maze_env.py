@@ -216,3 +216,29 @@ def test_render_returns_an_rgb_array():
     frame = env.render()
     assert frame.dtype == np.uint8 and frame.shape == (320, 240, 3)
     assert len(np.unique(frame.reshape(-1, 3), axis=0)) >= 4  # background, islands, blocks, agent
+
+
+def test_deadly_gaps_rule_ends_the_episode_on_a_step_into_a_gap():
+    cfg = make_config(bridge1_x=10.0)
+    for deadly in (False, True):
+        env = MovingMazeBatch([cfg], deadly_gaps=deadly)
+        env.agent[0] = (40.0, 61.0)
+        _, success, done = env.step([[0.0, -3.0]])  # into the gap: no bridge at x=40
+        assert not success[0]
+        assert done[0] == deadly and env.fallen[0] == deadly
+        if deadly:  # a fallen agent stays done: later actions change nothing
+            before = env.agent.copy()
+            env.step([[0.0, 3.0]])
+            np.testing.assert_array_equal(env.agent, before)
+    # The maze border never kills, under either rule.
+    env = MovingMazeBatch([make_config(agent_start=(59.0, 70.0))], deadly_gaps=True)
+    _, _, done = env.step([[3.0, 0.0]])
+    assert not done[0] and not env.fallen[0]
+
+
+def test_deadly_gaps_in_the_gym_env():
+    env = gym.make(MAZE_ENV_ID, deadly_gaps=True)
+    env.reset(seed=0, options={"config": make_config(bridge1_x=10.0).to_dict()})
+    env.unwrapped._batch.agent[0] = (40.0, 61.0)
+    _, reward, terminated, truncated, info = env.step(np.array([0.0, -3.0]))
+    assert terminated and not truncated and reward == 0.0 and info["fell"] and not info["success"]

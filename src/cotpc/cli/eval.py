@@ -29,6 +29,8 @@ class EvalConfig:
     """Write GIFs of the first --num-videos rollouts (agent, blocks and path drawn) into this directory."""
     num_videos: int = 4
     """How many rollouts to record with --video."""
+    deadly_gaps: bool = False
+    """Gap rule: a step into a gap ends the episode as a failure (default: the step is blocked)."""
     out: Optional[Path] = None
     """Per-episode results as JSON (default: RUN/eval_<split>.json)."""
     device: str = "cpu"
@@ -42,7 +44,6 @@ class EvalConfig:
     'cpu' = process pool; 'auto' = gpu when CUDA is available."""
     num_envs: int = 256
     """ManiSkill3 tasks with --backend gpu: environments simulated at once."""
-
 
 
 def run_eval(cfg: EvalConfig) -> dict:
@@ -66,13 +67,13 @@ def run_eval(cfg: EvalConfig) -> dict:
         demos = Path(data_path).parent
     weights = cfg.run if cfg.checkpoint == "last" else cfg.run / "best"
     policy = load_policy(weights, device=cfg.device)
-    result = evaluate(policy, demos, cfg.split, cfg.episodes, cfg.video, cfg.num_videos)
+    result = evaluate(policy, demos, cfg.split, cfg.episodes, cfg.video, cfg.num_videos, cfg.deadly_gaps)
     result.meta.update({"run": str(cfg.run), "checkpoint": cfg.checkpoint, "demos": str(demos)})
-    out = cfg.out or cfg.run / f"eval_{cfg.split}.json"
+    out = cfg.out or cfg.run / f"eval_{cfg.split}{'_deadly_gaps' if cfg.deadly_gaps else ''}.json"
     result.to_json(out)
     s = result.summary()
     print(
-        f"{cfg.run} [{cfg.split}] success {100 * s['success_rate']:.1f}% "
+        f"{cfg.run} [{cfg.split}{', deadly gaps' if cfg.deadly_gaps else ''}] success {100 * s['success_rate']:.1f}% "
         f"(95% CI {100 * s['ci95'][0]:.1f}-{100 * s['ci95'][1]:.1f}, n={s['episodes']}), "
         f"region transitions {s['mean_region_transitions']:.2f}/5, {s['seconds']:.2f} s -> {out}"
     )

@@ -169,12 +169,16 @@ def inside(points: np.ndarray, rects: np.ndarray) -> np.ndarray:
     return (rects[..., 0] <= x) & (x <= rects[..., 1]) & (rects[..., 2] <= y) & (y <= rects[..., 3])
 
 
+def in_bounds(points: np.ndarray) -> np.ndarray:
+    """(B,) whether each point is inside the maze's outer border."""
+    return (points[:, 0] >= 0) & (points[:, 0] <= WIDTH) & (points[:, 1] >= 0) & (points[:, 1] <= HEIGHT)
+
+
 def walkable(points: np.ndarray, start_y: np.ndarray, moving: np.ndarray) -> np.ndarray:
     """(B,) whether each point is inside the maze and on an island or a green block."""
-    in_bounds = (points[:, 0] >= 0) & (points[:, 0] <= WIDTH) & (points[:, 1] >= 0) & (points[:, 1] <= HEIGHT)
     on_island = inside(points, ISLANDS).any(1)
     on_block = inside(points, block_rects(start_y, moving)).any(1)
-    return in_bounds & (on_island | on_block)
+    return in_bounds(points) & (on_island | on_block)
 
 
 def region_of(points: np.ndarray, start_y: np.ndarray, moving: np.ndarray) -> np.ndarray:
@@ -223,13 +227,19 @@ class MovingMazeBatch:
     """Many Moving Maze episodes stepped together (numpy, no Python loop over episodes).
 
     An episode that has reached the target is done: it ignores further actions and stays successful.
+
+    ``deadly_gaps`` picks the rule for a move that ends inside the maze but off walkable ground (in a gap where
+    no block is at that moment): ``False`` (default) leaves the agent where it is; ``True`` makes the agent fall
+    and ends the episode as a failure. Moves that would leave the maze are blocked under both rules (the paper:
+    the agent "cannot cross the borders ... but will not die from doing so"). See docs/moving-maze.md.
     """
 
-    def __init__(self, configs: list[MazeConfig], horizon: int = HORIZON):
+    def __init__(self, configs: list[MazeConfig], horizon: int = HORIZON, deadly_gaps: bool = False):
         if not configs:
             raise ValueError("MovingMazeBatch needs at least one config")
         self.configs = list(configs)
         self.horizon = horizon
+        self.deadly_gaps = deadly_gaps
         self.reset()
 
     @property
@@ -244,6 +254,7 @@ class MovingMazeBatch:
         self.velocity = np.array([cfg.velocities for cfg in c], dtype=np.float64)
         self.frozen = np.zeros((len(c), 3), dtype=bool)
         self.success = np.zeros(len(c), dtype=bool)
+        self.fallen = np.zeros(len(c), dtype=bool)
         self.elapsed = np.zeros(len(c), dtype=np.int64)
         # Furthest region reached along the route (number of completed region transitions).
         self.progress = np.maximum(region_of(self.agent, self.start_y, self.moving), 0)
@@ -275,14 +286,16 @@ class MovingMazeBatch:
         )
 
     def step(self, actions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Apply (B, 2) displacements. Returns (obs, success, done); done = success or horizon reached."""
+        """Apply (B, 2) displacements. Returns (obs, success, done); done = success, fallen or horizon reached."""
         actions = np.clip(check_actions(actions, self.num_envs), -MAX_ACTION, MAX_ACTION)
-        active = ~self.success & (self.elapsed < self.horizon)
+        active = ~self.success & ~self.fallen & (self.elapsed < self.horizon)
         # The move is checked against the block positions the agent observed; a move that would leave walkable
         # ground leaves the agent where it is. Every gap (>= 5) is wider than the largest step (4 per component),
         # so checking the end point is enough: no move can jump a gap.
         proposal = self.agent + actions
         ok = active & walkable(proposal, self.start_y, self.moving)
+        if self.deadly_gaps:
+            self.fallen |= active & ~ok & in_bounds(proposal)
         self.agent = np.where(ok[:, None], proposal, self.agent)
         # A moving block the agent stands on stops for good.
         on_block = inside(self.agent, block_rects(self.start_y, self.moving))[:, 1:]
@@ -292,7 +305,7 @@ class MovingMazeBatch:
         self.elapsed += active
         region = region_of(self.agent, self.start_y, self.moving)
         self.progress = np.where(active & (region == self.progress + 1), region, self.progress)
-        done = self.success | (self.elapsed >= self.horizon)
+        done = self.success | self.fallen | (self.elapsed >= self.horizon)
         return self.obs(), self.success.copy(), done
 
     def render(self, index: int = 0, scale: int = 4, path: np.ndarray | None = None) -> np.ndarray:
@@ -309,9 +322,10 @@ class MovingMazeEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
-    def __init__(self, render_mode: str | None = "rgb_array", horizon: int = HORIZON):
+    def __init__(self, render_mode: str | None = "rgb_array", horizon: int = HORIZON, deadly_gaps: bool = False):
         self.render_mode = render_mode
         self.horizon = horizon
+        self.deadly_gaps = deadly_gaps
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(OBS_DIM,), dtype=np.float32)
         self.action_space = gym.spaces.Box(-MAX_ACTION, MAX_ACTION, shape=(ACTION_DIM,), dtype=np.float32)
         self._batch: MovingMazeBatch | None = None
@@ -323,21 +337,22 @@ class MovingMazeEnv(gym.Env):
         else:
             config = sample_config(self.np_random)
         self.config = config
-        self._batch = MovingMazeBatch([config], horizon=self.horizon)
+        self._batch = MovingMazeBatch([config], horizon=self.horizon, deadly_gaps=self.deadly_gaps)
         return self._batch.obs()[0], self._info()
 
     def step(self, action):
         if self._batch is None:
             raise RuntimeError("call reset() before step()")
         obs, success, done = self._batch.step(check_actions(action, 1))
-        terminated = bool(success[0])
+        terminated = bool(success[0] or self._batch.fallen[0])
         truncated = bool(done[0]) and not terminated
-        return obs[0], float(terminated), terminated, truncated, self._info()
+        return obs[0], float(success[0]), terminated, truncated, self._info()
 
     def _info(self) -> dict:
         b = self._batch
         return {
             "success": bool(b.success[0]),
+            "fell": bool(b.fallen[0]),
             "region_transitions": int(b.progress[0]),
             "elapsed_steps": int(b.elapsed[0]),
             "state": b.state()[0],

@@ -85,12 +85,18 @@ class EvalResult:
 
 
 def rollout(
-    policy, configs: list[MazeConfig], seeds: list[int], split: str, horizon: int = HORIZON, record: int = 0
+    policy,
+    configs: list[MazeConfig],
+    seeds: list[int],
+    split: str,
+    horizon: int = HORIZON,
+    record: int = 0,
+    deadly_gaps: bool = False,
 ) -> tuple[EvalResult, list[list[np.ndarray]]]:
     """Roll ``policy`` out in all ``configs`` at once. Returns the result and, for the first ``record`` episodes,
     the agent positions and block states needed to draw them."""
     start = time.perf_counter()
-    env = MovingMazeBatch(configs, horizon=horizon)
+    env = MovingMazeBatch(configs, horizon=horizon, deadly_gaps=deadly_gaps)
     obs = env.reset()
     policy.reset()
     steps = np.full(len(configs), horizon)
@@ -111,6 +117,7 @@ def rollout(
         steps=steps,
         seeds=list(seeds),
         seconds=time.perf_counter() - start,
+        meta={"deadly_gaps": deadly_gaps, "fell": int(env.fallen.sum())},
     )
     return result, frames
 
@@ -140,11 +147,15 @@ def evaluate(
     episodes: int | None = None,
     video_dir: str | Path | None = None,
     num_videos: int = 4,
+    deadly_gaps: bool = False,
 ) -> EvalResult:
-    """Success rate of ``policy`` on the ``seen`` or ``unseen`` Moving Maze configs of ``demo_dir``."""
+    """Success rate of ``policy`` on the ``seen`` or ``unseen`` Moving Maze configs of ``demo_dir``.
+
+    ``deadly_gaps``: a step into a gap ends the episode as a failure instead of being blocked (see
+    :class:`cotpc.envs.moving_maze.MovingMazeBatch`)."""
     configs, seeds = load_split_configs(demo_dir, split, episodes)
     record = min(num_videos, len(configs)) if video_dir else 0
-    result, frames = rollout(policy, configs, seeds, split, record=record)
+    result, frames = rollout(policy, configs, seeds, split, record=record, deadly_gaps=deadly_gaps)
     if video_dir:
         result.meta["videos"] = [str(p) for p in write_videos(frames, seeds, result.success, video_dir)]
     return result

@@ -21,6 +21,14 @@ from cotpc.envs.moving_maze import HORIZON
 # The paper's Table 1 (Moving Maze, unseen configs, success %). Its ablations (Table 4) are on ManiSkill2 only.
 PAPER_UNSEEN = {"bc": 9.0, "dt": 23.0, "bet": 33.0, "cotpc": 44.0}
 BASELINES = ("bc", "dt", "bet", "cotpc")
+# Result key -> (split, deadly_gaps). Training never sees the gap rule (demos never step into a gap), so the same
+# checkpoints are evaluated under both rules; "seen"/"unseen" use the environment's default rule.
+EVAL_KEYS = {
+    "seen": ("seen", False),
+    "unseen": ("unseen", False),
+    "seen_deadly_gaps": ("seen", True),
+    "unseen_deadly_gaps": ("unseen", True),
+}
 ABLATIONS = ("only-last", "only-next", "random", "vanilla", "o-shared", "swapped", "bet-prompt", "no-rand-mask", "decoupled")
 
 
@@ -68,8 +76,8 @@ def run(s: ReproduceSettings) -> dict:
     names = list(s.policies) + [a for a in s.ablations if a not in s.policies]
     for name in names:
         seeds = range(s.seeds) if name in s.policies else range(1)  # ablations: one seed each
-        per_split: dict = {"seen": [], "unseen": []}
-        transitions: dict = {"seen": [], "unseen": []}
+        per_split: dict = {key: [] for key in EVAL_KEYS}
+        transitions: dict = {key: [] for key in EVAL_KEYS}
         for seed in seeds:
             run_dir = out / "runs" / name / f"seed{seed}"
             t0 = time.perf_counter()
@@ -88,19 +96,21 @@ def run(s: ReproduceSettings) -> dict:
                 train(cfg)
             timings[f"{name}/seed{seed}"] = round(time.perf_counter() - t0, 1)
             policy = load_policy(run_dir)
-            for split in ("seen", "unseen"):
-                video = out / "videos" / name if (split == "unseen" and seed == 0) else None
-                r = evaluate(policy, demos, split, video_dir=video, num_videos=2)
-                r.to_json(run_dir / f"eval_{split}.json")
-                per_split[split].append(100 * r.success_rate)
-                transitions[split].append(float(r.region_transitions.mean()))
+            for key, (split, deadly) in EVAL_KEYS.items():
+                video = out / "videos" / name if (key == "unseen" and seed == 0) else None
+                r = evaluate(policy, demos, split, video_dir=video, num_videos=2, deadly_gaps=deadly)
+                r.to_json(run_dir / f"eval_{key}.json")
+                per_split[key].append(100 * r.success_rate)
+                transitions[key].append(float(r.region_transitions.mean()))
             print(
-                f"[4/5] {name} seed {seed}: seen {per_split['seen'][-1]:.1f}%  unseen {per_split['unseen'][-1]:.1f}%",
+                f"[4/5] {name} seed {seed}: seen {per_split['seen'][-1]:.1f}%  unseen {per_split['unseen'][-1]:.1f}%  "
+                f"(deadly gaps: seen {per_split['seen_deadly_gaps'][-1]:.1f}%  "
+                f"unseen {per_split['unseen_deadly_gaps'][-1]:.1f}%)",
                 flush=True,
             )
         results[name] = {
-            split: {**_stats(per_split[split]), "region_transitions": float(np.mean(transitions[split]))}
-            for split in ("seen", "unseen")
+            key: {**_stats(per_split[key]), "region_transitions": float(np.mean(transitions[key]))}
+            for key in EVAL_KEYS
         }
     import torch
 
@@ -154,10 +164,12 @@ def write_report(results: dict, out: Path) -> Path:
         f"Wall time {meta['wall_seconds'] / 60:.1f} min on {meta['hardware']['cpus']} CPU(s) "
         f"({meta['hardware']['machine']}); torch {meta['versions']['torch']}, numpy {meta['versions']['numpy']}.",
         "",
-        "Success rate (%): mean ± std over seeds, best seed in brackets; region transitions: mean of 5.",
+        "Success rate (%): mean ± std over seeds, best seed in brackets; region transitions: mean of 5. "
+        "Default rule: a step into a gap is blocked; *deadly gaps*: it ends the episode as a failure "
+        "(same checkpoints, see docs/moving-maze.md).",
         "",
-        "| policy | seen | unseen | unseen transitions | paper unseen |",
-        "|---|---|---|---|---|",
+        "| policy | seen | unseen | unseen transitions | seen, deadly gaps | unseen, deadly gaps | paper unseen |",
+        "|---|---|---|---|---|---|---|",
     ]
 
     def cell(r):
@@ -167,15 +179,15 @@ def write_report(results: dict, out: Path) -> Path:
         r = results[p]
         lines.append(
             f"| {p} | {cell(r['seen'])} | {cell(r['unseen'])} | {r['unseen']['region_transitions']:.2f} | "
-            f"{PAPER_UNSEEN.get(p, '–')} |"
+            f"{cell(r['seen_deadly_gaps'])} | {cell(r['unseen_deadly_gaps'])} | {PAPER_UNSEEN.get(p, '–')} |"
         )
     if meta["ablations"]:
         lines += ["", "## CoTPC ablations (paper Table 4 presets, one seed each)", "",
-                  "| preset | seen | unseen | unseen transitions |", "|---|---|---|---|"]
+                  "| preset | seen | unseen | unseen transitions | unseen, deadly gaps |", "|---|---|---|---|---|"]
         for a in meta["ablations"]:
             r = results[a]
             lines.append(f"| {a} | {r['seen']['mean']:.1f} | {r['unseen']['mean']:.1f} | "
-                         f"{r['unseen']['region_transitions']:.2f} |")
+                         f"{r['unseen']['region_transitions']:.2f} | {r['unseen_deadly_gaps']['mean']:.1f} |")
     figures = _plots(results, out, policies + list(meta["ablations"]))
     lines += ["", "## Figures", ""] + [f"![{f.stem}]({f.name})" for f in figures]
     videos = sorted((out / "videos").glob("*/*.gif")) if (out / "videos").exists() else []
@@ -195,12 +207,14 @@ def _plots(results: dict, out: Path, names: list[str]) -> list[Path]:
 
     paths = []
     # Success bars
-    fig, ax = plt.subplots(figsize=(1.0 + 0.9 * len(names), 3.2))
+    fig, ax = plt.subplots(figsize=(1.5 + 1.1 * len(names), 3.4))
     x = np.arange(len(names))
-    for k, split in enumerate(("seen", "unseen")):
-        means = [results[n][split]["mean"] for n in names]
-        stds = [results[n][split]["std"] for n in names]
-        ax.bar(x + (k - 0.5) * 0.38, means, 0.38, yerr=stds, label=split, capsize=2)
+    width = 0.8 / len(EVAL_KEYS)
+    for k, key in enumerate(EVAL_KEYS):
+        means = [results[n][key]["mean"] for n in names]
+        stds = [results[n][key]["std"] for n in names]
+        ax.bar(x + (k - (len(EVAL_KEYS) - 1) / 2) * width, means, width, yerr=stds, label=key.replace("_", " "),
+               capsize=2)
     ax.set_xticks(x, names, rotation=30, ha="right", fontsize=8)
     ax.set_ylabel("success rate (%)")
     ax.legend(fontsize=8)
