@@ -91,10 +91,14 @@ def run(s: ReproduceSettings) -> dict:
                     seed=seed,
                     resume=(run_dir / "training_state.pt").exists(),
                     progress=sys.stderr.isatty(),
+                    val_every=max(s.iters // 10, 1),  # ten points on the learning curve
                     **s.extra_train_args,
                 )
                 train(cfg)
-            timings[f"{name}/seed{seed}"] = round(time.perf_counter() - t0, 1)
+                (run_dir / "timing.json").write_text(json.dumps({"train_seconds": round(time.perf_counter() - t0, 1)}))
+            # Training time as measured when the run was trained (possibly by an earlier invocation).
+            timing = run_dir / "timing.json"
+            timings[f"{name}/seed{seed}"] = json.loads(timing.read_text())["train_seconds"] if timing.exists() else None
             policy = load_policy(run_dir)
             for key, (split, deadly) in EVAL_KEYS.items():
                 video = out / "videos" / name if (key == "unseen" and seed == 0) else None
@@ -121,7 +125,8 @@ def run(s: ReproduceSettings) -> dict:
         "subskills": seg,
         "versions": {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__},
         "hardware": {"machine": platform.machine(), "processor": platform.processor(), "cpus": _cpu_count()},
-        "wall_seconds": round(time.perf_counter() - t_start, 1),
+        "wall_seconds": round(time.perf_counter() - t_start, 1),  # this invocation (finished runs are reused)
+        "train_seconds_total": round(sum(t for t in timings.values() if t), 1),
         "train_seconds": timings,
         "horizon": HORIZON,
         "success_unit": "percent of episodes",
@@ -161,7 +166,8 @@ def write_report(results: dict, out: Path) -> Path:
         f"{s['extra_train_args'].get('batch_size') or 'default (256; bc 32)'}, {s['seeds']} seed(s) per policy, "
         f"horizon {meta['horizon']}.  ",
         f"Checkpoints: {meta['checkpoint_selection']}.  ",
-        f"Wall time {meta['wall_seconds'] / 60:.1f} min on {meta['hardware']['cpus']} CPU(s) "
+        f"Training {meta.get('train_seconds_total', 0) / 60:.1f} min in all, this invocation "
+        f"{meta['wall_seconds'] / 60:.1f} min, on {meta['hardware']['cpus']} CPU(s) "
         f"({meta['hardware']['machine']}); torch {meta['versions']['torch']}, numpy {meta['versions']['numpy']}.",
         "",
         "Success rate (%): mean ± std over seeds, best seed in brackets; region transitions: mean of 5. "
@@ -222,16 +228,24 @@ def _plots(results: dict, out: Path, names: list[str]) -> list[Path]:
     paths.append(out / "success.png")
     fig.savefig(paths[-1], dpi=110)
     plt.close(fig)
-    # Learning curves: validation action loss of seed 0 of each policy (from TensorBoard logs)
-    fig, ax = plt.subplots(figsize=(5.5, 3.2))
-    for n in names:
-        steps, values = _scalar(out / "runs" / n / "seed0" / "tb", "val/bc")
-        if steps:
-            ax.plot(steps, values, label=n)
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("validation action loss")
-    ax.set_yscale("log")
-    ax.legend(fontsize=7, ncol=2)
+    # Learning curves of seed 0 of each policy (from TensorBoard logs): training and validation action loss.
+    # One panel per policy: the losses of MSE and centre/offset heads are not on one scale.
+    cols = min(4, len(names))
+    rows = (len(names) + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(3.0 * cols, 2.4 * rows), squeeze=False)
+    for ax, n in zip(axes.flat, names):
+        logdir = out / "runs" / n / "seed0" / "tb"
+        for tag, style in (("train/bc", "-"), ("val/bc", "o-")):
+            steps, values = _scalar(logdir, tag)
+            if steps:
+                ax.plot(steps, values, style, ms=3, label=tag.split("/")[0])
+        ax.set_title(n, fontsize=9)
+        ax.set_xlabel("iteration", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.legend(fontsize=7)
+    for ax in list(axes.flat)[len(names):]:
+        ax.axis("off")
+    fig.supylabel("action loss", fontsize=8)
     fig.tight_layout()
     paths.append(out / "learning_curves.png")
     fig.savefig(paths[-1], dpi=110)
