@@ -82,3 +82,18 @@ def test_demos_also_succeed_when_gaps_are_deadly(demo_dir):
     # ...while a random walker falls.
     result = evaluate(RandomPolicy(seed=0), demo_dir, "seen", deadly_gaps=True)
     assert result.meta["fell"] > 0
+
+
+def test_eval_cli_on_a_trained_run(demo_dir, tmp_path, capsys):
+    run = tmp_path / "bc"
+    cotpc_main(["train", "--data", str(demo_dir / "train.h5"), "--policy", "bc", "--out", str(run),
+                "--iters", "5", "--no-progress"])
+    cotpc_main(["eval", str(run), "--split", "unseen", "--episodes", "3", "--video", str(tmp_path / "v"),
+                "--num-videos", "1"])
+    saved = json.loads((run / "eval_unseen.json").read_text())
+    assert saved["summary"]["episodes"] == 3 and saved["summary"]["split"] == "unseen"
+    assert all(e["seed"] >= 2_000_000 for e in saved["episodes"])  # the test configs
+    assert len(list((tmp_path / "v").glob("*.gif"))) == 1
+    assert "success" in capsys.readouterr().out
+    cotpc_main(["eval", str(run), "--split", "seen", "--deadly-gaps", "--episodes", "2"])
+    assert json.loads((run / "eval_seen_deadly_gaps.json").read_text())["summary"]["deadly_gaps"] is True
