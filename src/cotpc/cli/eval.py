@@ -46,6 +46,17 @@ class EvalConfig:
     """ManiSkill3 tasks with --backend gpu: environments simulated at once."""
 
 
+def _demos_and_weights(cfg: EvalConfig, info: dict) -> tuple[Path, Path]:
+    """The demo directory (given, or that of the run's training data) and the checkpoint to evaluate."""
+    demos = cfg.demos
+    if demos is None:
+        data_path = info.get("dataset", {}).get("path")
+        if not data_path:
+            raise SystemExit(f"cotpc eval: {cfg.run}/config.json does not name its data; pass --demos DIR")
+        demos = Path(data_path).parent
+    return demos, (cfg.run if cfg.checkpoint == "last" else cfg.run / "best")
+
+
 def run_eval(cfg: EvalConfig) -> dict:
     from cotpc import load_policy
     from cotpc.evaluation.maze import evaluate
@@ -59,13 +70,7 @@ def run_eval(cfg: EvalConfig) -> dict:
         if is_maniskill_env(env_id):
             return run_eval_maniskill(cfg, info, env_id)
         raise SystemExit(f"cotpc eval: {cfg.run} was trained on {env_id}; supported: Moving Maze and ManiSkill3 tasks")
-    demos = cfg.demos
-    if demos is None:
-        data_path = info.get("dataset", {}).get("path")
-        if not data_path:
-            raise SystemExit(f"cotpc eval: {cfg.run}/config.json does not name its data; pass --demos DIR")
-        demos = Path(data_path).parent
-    weights = cfg.run if cfg.checkpoint == "last" else cfg.run / "best"
+    demos, weights = _demos_and_weights(cfg, info)
     policy = load_policy(weights, device=cfg.device)
     result = evaluate(policy, demos, cfg.split, cfg.episodes, cfg.video, cfg.num_videos, cfg.deadly_gaps)
     result.meta.update({"run": str(cfg.run), "checkpoint": cfg.checkpoint, "demos": str(demos)})
@@ -89,13 +94,7 @@ def run_eval_maniskill(cfg: EvalConfig, info: dict, env_id: str) -> dict:
     import_maniskill()
     if cfg.video:
         raise SystemExit("cotpc eval: --video needs a render device for ManiSkill3 tasks; not supported yet")
-    demos = cfg.demos
-    if demos is None:
-        data_path = info.get("dataset", {}).get("path")
-        if not data_path:
-            raise SystemExit(f"cotpc eval: {cfg.run}/config.json does not name its data; pass --demos DIR")
-        demos = Path(data_path).parent
-    weights = cfg.run if cfg.checkpoint == "last" else cfg.run / "best"
+    demos, weights = _demos_and_weights(cfg, info)
     device = cfg.device if cfg.backend != "cpu" else "cpu"
     result = evaluate(policy_loader(weights, device), demos, cfg.split, cfg.episodes, horizon=cfg.horizon,
                       procs=cfg.procs, backend=cfg.backend, num_envs=cfg.num_envs)
