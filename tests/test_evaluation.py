@@ -20,7 +20,7 @@ from cotpc.evaluation.maze import (
 @pytest.fixture(scope="module")
 def demo_dir(tmp_path_factory):
     out = tmp_path_factory.mktemp("eval_demos")
-    cotpc_main(["demos", "maze", "--out", str(out), "--train", "30", "--test", "10"])
+    cotpc_main(["demos", "maze", "--out", str(out), "--train", "30", "--test", "10", "--val", "5"])
     return out
 
 
@@ -51,12 +51,26 @@ def test_random_policy_rarely_succeeds(demo_dir):
     assert result.region_transitions.mean() < 2
 
 
-def test_splits_come_from_their_own_seed_ranges(demo_dir):
+def test_splits_come_from_their_own_seed_ranges(demo_dir, tmp_path):
     _, seen = load_split_configs(demo_dir, "seen")
+    _, val = load_split_configs(demo_dir, "val")
     _, unseen = load_split_configs(demo_dir, "unseen")
-    assert not set(seen) & set(unseen)
-    with pytest.raises(ValueError):
+    assert len(seen) == 30 and len(val) == 5 and len(unseen) == 10
+    assert all(1_000_000 <= s < 2_000_000 for s in val)
+    assert not set(seen) & set(unseen) and not set(seen) & set(val) and not set(val) & set(unseen)
+    with pytest.raises(ValueError, match="split must be one of"):
         load_split_configs(demo_dir, "validation")
+    # A demo directory without validation demos says how to make them.
+    (tmp_path / "train.h5").symlink_to(demo_dir / "train.h5")
+    with pytest.raises(FileNotFoundError, match="--val"):
+        load_split_configs(tmp_path, "val")
+
+
+def test_a_test_file_in_place_of_the_validation_file_is_refused(demo_dir, tmp_path):
+    for ext in ("h5", "json"):
+        (tmp_path / f"val.{ext}").symlink_to(demo_dir / f"test.{ext}")
+    with pytest.raises(ValueError, match="belongs to the test split"):
+        load_split_configs(tmp_path, "val")
 
 
 def test_rollout_stops_early_and_records_steps(demo_dir):
@@ -97,3 +111,6 @@ def test_eval_cli_on_a_trained_run(demo_dir, tmp_path, capsys):
     assert "success" in capsys.readouterr().out
     cotpc_main(["eval", str(run), "--split", "seen", "--deadly-gaps", "--episodes", "2"])
     assert json.loads((run / "eval_seen_deadly_gaps.json").read_text())["summary"]["deadly_gaps"] is True
+    cotpc_main(["eval", str(run), "--split", "val"])
+    saved = json.loads((run / "eval_val.json").read_text())
+    assert saved["summary"]["episodes"] == 5 and all(1_000_000 <= e["seed"] < 2_000_000 for e in saved["episodes"])

@@ -8,11 +8,11 @@ from cotpc.cli.main import main as cotpc_main
 def test_reproduce_runs_end_to_end_and_resumes(tmp_path, capsys):
     out = tmp_path / "study"
     argv = ["reproduce", "maze", "--quick", "--out", str(out), "--iters", "6", "--batch-size", "16",
-            "--train-demos", "30", "--test-demos", "4", "--policies", "bc", "cotpc", "--ablations", "vanilla"]
+            "--train-demos", "30", "--test-demos", "4", "--val-demos", "3", "--policies", "bc", "cotpc", "--ablations", "vanilla"]
     cotpc_main(argv)
     results = json.loads((out / "results.json").read_text())
     for name in ("bc", "cotpc", "vanilla"):
-        for split, n in (("seen", 30), ("unseen", 4)):
+        for split, n in (("seen", 30), ("val", 3), ("unseen", 4)):
             r = results[name][split]
             assert {"mean", "std", "best", "runs"} <= set(r)
             assert len(r["runs"]) == 1 and 0.0 <= r["mean"] <= 100.0
@@ -23,7 +23,7 @@ def test_reproduce_runs_end_to_end_and_resumes(tmp_path, capsys):
     assert results["meta"]["ablations"] == ["vanilla"]
     assert results["meta"]["settings"]["iters"] == 6
     report = (out / "report.md").read_text()
-    assert "| cotpc |" in report and "| vanilla |" in report
+    assert "| cotpc |" in report and "| vanilla |" in report and "| cotpc (full method, seed 0) |" in report
     assert (out / "success.png").exists() and (out / "learning_curves.png").exists()
     assert list((out / "videos" / "cotpc").glob("*.gif"))
     printed = capsys.readouterr().out

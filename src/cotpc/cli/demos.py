@@ -13,7 +13,8 @@ import tyro
 
 @dataclass
 class MazeDemos:
-    """Moving Maze demos from the RRT-style planner with hindsight; writes OUT/train.{h5,json}, OUT/test.{h5,json}."""
+    """Moving Maze demos from the RRT-style planner with hindsight; writes OUT/train.{h5,json}, OUT/val.{h5,json}
+    and OUT/test.{h5,json}, each from its own disjoint seed range."""
 
     out: Path
     """Output directory."""
@@ -21,6 +22,9 @@ class MazeDemos:
     """Number of training demos (configs from the train seed range; these are also the 'seen' configs)."""
     test: int = 100
     """Number of test demos (configs from the disjoint test seed range; the 'unseen' configs)."""
+    val: int = 100
+    """Number of validation demos (configs from the disjoint validation seed range): evaluate on these with
+    `cotpc eval --split val` to choose settings or checkpoints without touching the test configs. 0 = none."""
     seed: int = 0
     """Offset into each split's seed range: demo i of a split uses that split's seed start + seed + i."""
     workers: int = 1
@@ -32,7 +36,7 @@ def run_maze(cfg: MazeDemos) -> dict[str, Path]:
     from cotpc.demos.maze import generate_splits
 
     start = time.perf_counter()
-    sets = generate_splits(cfg.train, cfg.test, seed=cfg.seed, workers=cfg.workers)
+    sets = generate_splits(cfg.train, cfg.test, seed=cfg.seed, workers=cfg.workers, num_val=cfg.val)
     paths = {}
     for split, trajectories in sets.items():
         if len(trajectories) == 0:

@@ -1,4 +1,4 @@
-"""``cotpc eval RUN --split {seen,unseen}``: batched rollouts with a 95% confidence interval."""
+"""``cotpc eval RUN --split {seen,val,unseen}``: batched rollouts with a 95% confidence interval."""
 
 from __future__ import annotations
 
@@ -17,8 +17,9 @@ class EvalConfig:
 
     run: tyro.conf.Positional[Path]
     """Run directory written by `cotpc train` (config.json + model.safetensors)."""
-    split: Literal["seen", "unseen"] = "unseen"
-    """seen = the training demos' configs; unseen = the test demos' configs (disjoint seed range)."""
+    split: Literal["seen", "val", "unseen"] = "unseen"
+    """seen = the training demos' configs; val = the validation demos' configs (for choosing settings and
+    checkpoints; Moving Maze only); unseen = the test demos' configs. The three seed ranges are disjoint."""
     episodes: Optional[int] = None
     """Evaluate only the first N configs of the split (default: all)."""
     demos: Optional[Path] = None

@@ -40,6 +40,8 @@ class MazeReproduce:
     """Training demos (the seen configs)."""
     test_demos: int = 100
     """Test demos (the unseen configs)."""
+    val_demos: int = 100
+    """Validation configs (own seed range): evaluated and reported, for choosing settings without the test set."""
     batch_size: Optional[int] = None
     """Training batch size (default: the paper's 256; 64 with --quick)."""
     workers: int = 2
@@ -64,6 +66,7 @@ def main(argv: list[str], prog: str) -> None:
         cost=cfg.cost or MAZE_DEFAULT_COST,
         train_demos=cfg.train_demos,
         test_demos=cfg.test_demos,
+        val_demos=cfg.val_demos,
         workers=cfg.workers,
         extra_train_args={"device": cfg.device, "batch_size": cfg.batch_size or quick.get("batch_size")},
     )

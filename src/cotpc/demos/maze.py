@@ -264,14 +264,16 @@ def generate(seeds: np.ndarray, split: str, workers: int = 1) -> TrajectorySet:
     return TrajectorySet(episodes=episodes, env_info=env_info, meta=meta)
 
 
-def generate_splits(num_train: int, num_test: int, seed: int = 0, workers: int = 1) -> dict[str, TrajectorySet]:
+def generate_splits(
+    num_train: int, num_test: int, seed: int = 0, workers: int = 1, num_val: int = 0
+) -> dict[str, TrajectorySet]:
+    """Demos of each split from its own seed range: train (the seen configs), val (validation configs for
+    selection and diagnostics) and test (the unseen configs). Splits with 0 demos are left out."""
     from cotpc.envs.moving_maze import seeds_for
 
     start = time.perf_counter()
-    sets = {
-        "train": generate(seeds_for("train", num_train, seed), "train", workers),
-        "test": generate(seeds_for("test", num_test, seed), "test", workers),
-    }
+    sizes = {"train": num_train, "val": num_val, "test": num_test}
+    sets = {split: generate(seeds_for(split, n, seed), split, workers) for split, n in sizes.items() if n > 0}
     for s in sets.values():
         s.meta["generation_seconds_total"] = round(time.perf_counter() - start, 3)
     return sets

@@ -17,8 +17,9 @@ import numpy as np
 from cotpc.data.trajectories import load_trajectories
 from cotpc.envs.moving_maze import HORIZON, MazeConfig, MovingMazeBatch, check_seed, render_frame
 
-# Which demo file holds each split's configurations, and the seed range they must come from.
-SPLIT_FILES = {"seen": ("train", "train"), "unseen": ("test", "test")}
+# Which demo file holds each split's configurations, and the seed range they must come from. "val" configs are
+# for choosing settings and checkpoints; "unseen" (test) configs only for the final numbers.
+SPLIT_FILES = {"seen": ("train", "train"), "val": ("val", "val"), "unseen": ("test", "test")}
 
 
 def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -32,10 +33,14 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
 
 
 def load_split_configs(demo_dir: str | Path, split: str, episodes: int | None = None) -> tuple[list[MazeConfig], list[int]]:
-    """Configs (and their seeds) of ``seen`` (the training demos) or ``unseen`` (the test demos)."""
+    """Configs (and their seeds) of ``seen`` (the training demos), ``val`` (the validation demos) or ``unseen``
+    (the test demos)."""
     if split not in SPLIT_FILES:
         raise ValueError(f"split must be one of {sorted(SPLIT_FILES)}, got {split!r}")
     name, seed_split = SPLIT_FILES[split]
+    if not (Path(demo_dir) / f"{name}.h5").exists():
+        hint = " (generate them with `cotpc demos maze --val N`)" if split == "val" else ""
+        raise FileNotFoundError(f"no {split} configs: {Path(demo_dir) / f'{name}.h5'} does not exist{hint}")
     data = load_trajectories(Path(demo_dir) / f"{name}.h5", extras=())
     if data.env_info.get("env_id") != "cotpc/MovingMaze-v0":
         raise ValueError(f"{demo_dir}/{name}.json is for {data.env_info.get('env_id')!r}, not Moving Maze")

@@ -23,10 +23,14 @@ PAPER_UNSEEN = {"bc": 9.0, "dt": 23.0, "bet": 33.0, "cotpc": 44.0}
 BASELINES = ("bc", "dt", "bet", "cotpc")
 # Result key -> (split, deadly_gaps). Training never sees the gap rule (demos never step into a gap), so the same
 # checkpoints are evaluated under both rules; "seen"/"unseen" use the environment's default rule.
+# "val" configs come from the validation seed range: they are for diagnosing and choosing settings, so that
+# nothing is ever tuned on "unseen" (test) configs.
 EVAL_KEYS = {
     "seen": ("seen", False),
+    "val": ("val", False),
     "unseen": ("unseen", False),
     "seen_deadly_gaps": ("seen", True),
+    "val_deadly_gaps": ("val", True),
     "unseen_deadly_gaps": ("unseen", True),
 }
 ABLATIONS = ("only-last", "only-next", "random", "vanilla", "o-shared", "swapped", "bet-prompt", "no-rand-mask", "decoupled")
@@ -43,6 +47,7 @@ class ReproduceSettings:
     cost: str = "sum-cosine"
     train_demos: int = 400
     test_demos: int = 100
+    val_demos: int = 100
     demo_seed: int = 0
     workers: int = 2
     extra_train_args: dict = field(default_factory=dict)
@@ -63,10 +68,14 @@ def run(s: ReproduceSettings) -> dict:
     t_start = time.perf_counter()
     out = Path(s.out)
     demos = out / "demos"
-    # 1. demos (regenerated only if missing)
-    if not ((demos / "train.h5").exists() and (demos / "test.h5").exists()):
-        print(f"[1/5] demos -> {demos}", flush=True)
-        run_maze(MazeDemos(out=demos, train=s.train_demos, test=s.test_demos, seed=s.demo_seed, workers=s.workers))
+    # 1. demos (only the missing splits are generated; each split has its own seed range, so this is the same
+    # as generating them all at once)
+    missing = {split: n for split, n in (("train", s.train_demos), ("val", s.val_demos), ("test", s.test_demos))
+               if not (demos / f"{split}.h5").exists()}
+    if missing:
+        print(f"[1/5] demos ({', '.join(missing)}) -> {demos}", flush=True)
+        run_maze(MazeDemos(out=demos, train=missing.get("train", 0), val=missing.get("val", 0),
+                           test=missing.get("test", 0), seed=s.demo_seed, workers=s.workers))
     # 2. unsupervised subskills on the training demos (cheap: always re-labelled with this beta)
     print(f"[2/5] subskill discovery, {s.cost} cost, beta={s.beta}", flush=True)
     seg, _ = label_file(demos / "train.h5", beta=s.beta, min_size=1, cost=s.cost)
@@ -107,9 +116,9 @@ def run(s: ReproduceSettings) -> dict:
                 per_split[key].append(100 * r.success_rate)
                 transitions[key].append(float(r.region_transitions.mean()))
             print(
-                f"[4/5] {name} seed {seed}: seen {per_split['seen'][-1]:.1f}%  unseen {per_split['unseen'][-1]:.1f}%  "
-                f"(deadly gaps: seen {per_split['seen_deadly_gaps'][-1]:.1f}%  "
-                f"unseen {per_split['unseen_deadly_gaps'][-1]:.1f}%)",
+                f"[4/5] {name} seed {seed}: seen {per_split['seen'][-1]:.1f}%  val {per_split['val'][-1]:.1f}%  "
+                f"unseen {per_split['unseen'][-1]:.1f}%  (deadly gaps: seen {per_split['seen_deadly_gaps'][-1]:.1f}%  "
+                f"val {per_split['val_deadly_gaps'][-1]:.1f}%  unseen {per_split['unseen_deadly_gaps'][-1]:.1f}%)",
                 flush=True,
             )
         results[name] = {
@@ -161,7 +170,8 @@ def write_report(results: dict, out: Path) -> Path:
         "# Moving Maze results",
         "",
         f"Command: `{meta.get('command') or 'cotpc reproduce maze'}`  ",
-        f"{s['train_demos']} training demos (seen configs), {s['test_demos']} test demos (unseen configs), "
+        f"{s['train_demos']} training demos (seen configs), {s.get('val_demos', 0)} validation configs, "
+        f"{s['test_demos']} test demos (unseen configs), "
         f"subskills: {s['cost']} cost, beta {s['beta']}, {s['iters']} training iterations per run at batch "
         f"{s['extra_train_args'].get('batch_size') or 'default (256; bc 32)'}, {s['seeds']} seed(s) per policy, "
         f"horizon {meta['horizon']}.  ",
@@ -174,8 +184,9 @@ def write_report(results: dict, out: Path) -> Path:
         "Default rule: a step into a gap is blocked; *deadly gaps*: it ends the episode as a failure "
         "(same checkpoints, see docs/moving-maze.md).",
         "",
-        "| policy | seen | unseen | unseen transitions | seen, deadly gaps | unseen, deadly gaps | paper unseen |",
-        "|---|---|---|---|---|---|---|",
+        "| policy | seen | val | unseen | unseen transitions | seen, deadly gaps | val, deadly gaps "
+        "| unseen, deadly gaps | paper unseen |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
 
     def cell(r):
@@ -184,16 +195,20 @@ def write_report(results: dict, out: Path) -> Path:
     for p in policies:
         r = results[p]
         lines.append(
-            f"| {p} | {cell(r['seen'])} | {cell(r['unseen'])} | {r['unseen']['region_transitions']:.2f} | "
-            f"{cell(r['seen_deadly_gaps'])} | {cell(r['unseen_deadly_gaps'])} | {PAPER_UNSEEN.get(p, '–')} |"
+            f"| {p} | {cell(r['seen'])} | {cell(r['val'])} | {cell(r['unseen'])} | "
+            f"{r['unseen']['region_transitions']:.2f} | {cell(r['seen_deadly_gaps'])} | {cell(r['val_deadly_gaps'])} | "
+            f"{cell(r['unseen_deadly_gaps'])} | {PAPER_UNSEEN.get(p, '–')} |"
         )
     if meta["ablations"]:
         lines += ["", "## CoTPC ablations (paper Table 4 presets, one seed each)", "",
-                  "| preset | seen | unseen | unseen transitions | unseen, deadly gaps |", "|---|---|---|---|---|"]
-        for a in meta["ablations"]:
+                  "| preset | seen | val | unseen | val, deadly gaps | unseen, deadly gaps |",
+                  "|---|---|---|---|---|---|"]
+        for a in ["cotpc"] * ("cotpc" in results) + list(meta["ablations"]):
             r = results[a]
-            lines.append(f"| {a} | {r['seen']['mean']:.1f} | {r['unseen']['mean']:.1f} | "
-                         f"{r['unseen']['region_transitions']:.2f} | {r['unseen_deadly_gaps']['mean']:.1f} |")
+            name = f"{a} (full method, seed 0)" if a == "cotpc" else a
+            first = {k: r[k]["runs"][0] for k in EVAL_KEYS}  # seed 0 of the full method, to compare like with like
+            lines.append(f"| {name} | {first['seen']:.1f} | {first['val']:.1f} | {first['unseen']:.1f} | "
+                         f"{first['val_deadly_gaps']:.1f} | {first['unseen_deadly_gaps']:.1f} |")
     figures = _plots(results, out, policies + list(meta["ablations"]))
     lines += ["", "## Figures", ""] + [f"![{f.stem}]({f.name})" for f in figures]
     videos = sorted((out / "videos").glob("*/*.gif")) if (out / "videos").exists() else []
