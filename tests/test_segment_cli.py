@@ -107,3 +107,19 @@ def test_bench_segment_small(capsys):
         assert lower["other"] == 0 and lower["ours"] + lower["equal"] == 3  # ruptures is never better
         assert x["speedup_per_traj"] > 0
     assert r["ours_seconds_all"] > 0
+
+
+def test_privileged_key_steps_as_subskills(tmp_path, capsys):
+    h5, ts = make_file(tmp_path / "demos", with_keys=True)
+    segment_main([str(h5), "--privileged"], prog="cotpc segment")
+    labels = read_labels(h5)
+    for ep in ts.episodes:
+        ends, attrs = labels[f"traj_{ep.episode_id}"]
+        # key states obs[7] and obs[13] end the first two subskills; the last ends with the demo
+        np.testing.assert_array_equal(ends, [6, 12, ep.num_steps - 1])
+        assert attrs["method"] == "key-steps"
+    assert "privileged key_steps" in capsys.readouterr().out
+    # Files without key_steps get a message, not a traceback.
+    h5, _ = make_file(tmp_path / "nokeys")
+    with pytest.raises(SystemExit, match="no key_steps"):
+        segment_main([str(h5), "--privileged"], prog="cotpc segment")

@@ -42,6 +42,9 @@ class Config:
     """Tolerance in steps when matching discovered boundaries to key_steps."""
     json: bool = False
     """Print the summary (or the sweep rows) as JSON."""
+    privileged: bool = False
+    """Do not discover: store each demo's privileged key_steps (e.g. the Moving Maze region entries) as its
+    subskill boundaries, like the official code's simulator key states. For comparing against discovery."""
 
 
 def defaults_for(env_id: str | None, beta: float | None, cost: str | None) -> tuple[float, str]:
@@ -55,8 +58,9 @@ def defaults_for(env_id: str | None, beta: float | None, cost: str | None) -> tu
 
 def format_summary(path: Path, s: dict) -> str:
     lines = [
-        f"labelled {s['demos']} demos of {path} (cost={s['cost']}, beta={s['beta']:g}, min_size={s['min_size']}, "
-        f"{s['method']}) in {s['seconds']:.3f} s",
+        (f"labelled {s['demos']} demos of {path} with their privileged key_steps" if s["method"] == "key-steps" else
+         f"labelled {s['demos']} demos of {path} (cost={s['cost']}, beta={s['beta']:g}, min_size={s['min_size']}, "
+         f"{s['method']}) in {s['seconds']:.3f} s"),
         f"subskills per demo: mean {s['subskills_mean']:.2f}, min {s['subskills_min']}, max {s['subskills_max']}",
         f"segment length (actions): mean {s['length_mean']:.1f}, min {s['length_min']}, max {s['length_max']}",
     ]
@@ -101,8 +105,13 @@ def run(cfg: Config) -> dict:
             print(f"wrote {plot_sweep(cfg.plot / 'subskills_sweep.png', tables, cfg.tol)}")
         return {"sweep": tables}
 
-    beta, cost = defaults_for(env_id, cfg.beta, cfg.cost)
-    summary, ends = label_file(cfg.data, beta, cfg.min_size, cost, cfg.tol, trajectories=ts)
+    if cfg.privileged:
+        from cotpc.subskills.labeling import label_file_from_key_steps
+
+        summary, ends = label_file_from_key_steps(cfg.data, trajectories=ts)
+    else:
+        beta, cost = defaults_for(env_id, cfg.beta, cfg.cost)
+        summary, ends = label_file(cfg.data, beta, cfg.min_size, cost, cfg.tol, trajectories=ts)
     print(json.dumps(summary, indent=1) if cfg.json else format_summary(cfg.data, summary))
     if cfg.plot is not None:
         from cotpc.subskills.plots import MAZE_ENV_ID, plot_maze_paths, plot_similarity_maps

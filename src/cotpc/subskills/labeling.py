@@ -41,3 +41,26 @@ def label_file(
     keys = [ep.extras["key_steps"] for ep in ts.episodes] if has_keys else None
     summary = {**attrs, "seconds": seconds, **score(ends, keys, tol)}
     return summary, ends
+
+
+def ends_from_key_steps(key_steps: np.ndarray, num_actions: int) -> np.ndarray:
+    """Segment ends whose key states are the privileged ``key_steps`` (state indices) plus the final state."""
+    key_steps = np.asarray(key_steps, dtype=np.int64)
+    if key_steps.ndim != 1 or np.any(key_steps < 1) or np.any(key_steps > num_actions):
+        raise ValueError(f"key_steps {key_steps.tolist()} must be state indices in [1, {num_actions}]")
+    return np.unique(np.concatenate([key_steps - 1, [num_actions - 1]]))
+
+
+def label_file_from_key_steps(path: str | os.PathLike, trajectories: TrajectorySet | None = None):
+    """Store the privileged ``key_steps`` of every episode as its subskills (the official code's setting, where
+    key states come from the simulator; for comparison with discovered subskills). Returns (summary, ends)."""
+    ts = load_trajectories(path) if trajectories is None else trajectories
+    missing = [ep.episode_id for ep in ts.episodes if "key_steps" not in ep.extras]
+    if missing:
+        raise ValueError(f"{path}: traj_{missing[0]} (and {len(missing) - 1} more) have no key_steps to use")
+    ends = [ends_from_key_steps(ep.extras["key_steps"], ep.num_steps) for ep in ts.episodes]
+    attrs = {"beta": float("nan"), "min_size": 1, "method": "key-steps", "cost": "none"}
+    write_episode_datasets(path, "subskill_ends", {ep.episode_id: e for ep, e in zip(ts.episodes, ends)}, attrs)
+    summary = {**attrs, "seconds": 0.0, **score(ends, [ep.extras["key_steps"] for ep in ts.episodes], 0)}
+    return summary, ends
+
