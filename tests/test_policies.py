@@ -129,3 +129,32 @@ def test_checkpoint_from_another_config_is_a_clear_error(trajs, tmp_path):
         load_policy(tmp_path / "run")
     with pytest.raises(CheckpointError, match="no config.json"):
         load_policy(tmp_path)
+
+
+def _predict_from_all_tokens(model, batch):
+    """Reference for predict(): every token through every block, then the heads on the last window index."""
+    cfg = model.cfg
+    x, _ = model._features(batch, train=False)
+    valid = batch.get("valid")
+    if cfg.action_head == "mse":
+        return model.action_decoder(model._select(x, cfg.centre_from, valid)[:, -1])
+    logits = model.centre_head(model._select(x, cfg.centre_from, valid)[:, -1])
+    offsets = model.offset_head(model._select(x, cfg.offset_from, valid)[:, -1]).view(-1, cfg.n_centres, P)
+    c = logits.argmax(-1)
+    return model.centres[c] + offsets[torch.arange(len(c)), c]
+
+
+@pytest.mark.parametrize("name", [n for n in PRESETS if n != "bc"])
+def test_inference_computes_only_the_tokens_it_reads_with_the_same_result(name, trajs):
+    # predict() runs the last block on 1-3 tokens; it must equal the full computation, with and without
+    # left padding (window starts before the episode) and with trained-looking (non-zero) weights.
+    model, ds = build(name, trajs)
+    with torch.no_grad():
+        for prm in model.parameters():
+            prm.add_(0.05 * torch.randn_like(prm))
+        batch = ds.windows(torch.tensor([0, 1, 2, 7, 15]))  # the first three start inside the window
+        assert not batch["valid"].all()
+        torch.testing.assert_close(model.eval().predict(batch), _predict_from_all_tokens(model, batch))
+        full = {k: v[3:] for k, v in batch.items()}
+        full.pop("valid")
+        torch.testing.assert_close(model.predict(full), _predict_from_all_tokens(model, full))

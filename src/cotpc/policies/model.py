@@ -134,15 +134,38 @@ class TransformerPolicy(nn.Module):
         return total, metrics
 
     # --- inference --------------------------------------------------------------------------------------------
+    def _last_features(self, batch: dict) -> dict[str, torch.Tensor]:
+        """(B, d) features of the last window index for each source the action heads read.
+
+        The same values as ``_select(features, source)[:, -1]``, but the last block computes only the tokens
+        read: the state token s(T-1), the CoT token T-1 and the action token a(T-2)."""
+        cfg, lay = self.cfg, self.gpt.layout
+        sources = {cfg.centre_from} | ({cfg.offset_from} if cfg.action_head == "bet" else set())
+        if "action" in sources:
+            sources.add("state")  # an action token that is missing or padding falls back to the state token
+        s_row = int(lay.state_pos[-1])
+        rows = {src: {"state": s_row, "cot": lay.C - 1, "action": max(s_row - 1, 0)}[src] for src in sorted(sources)}
+        states, actions = batch["states"], batch["actions"][:, :-1] if cfg.use_actions else None
+        timesteps, valid = batch["timesteps"], batch.get("valid")
+        if cfg.decoupled:  # the CoT transformer's prediction is an input of the action transformer
+            _, cot_pred = self._predict_cot(self.cot_gpt, states, actions, timesteps, valid, None)
+            states = torch.cat([states, cot_pred.to(states.dtype)], dim=-1)
+        row_index = torch.tensor(list(rows.values()), device=states.device)
+        x, _ = self.gpt(states, actions, timesteps, valid, rows=row_index)  # (B, len(rows), d)
+        feats = {src: x[:, i] for i, src in enumerate(rows)}
+        if "action" in feats:
+            has_prev = valid[:, -2] if (valid is not None and lay.T > 1) else torch.tensor(lay.T > 1)
+            feats["action"] = torch.where(has_prev.reshape(-1, 1), feats["action"], feats["state"])
+        return feats
+
     def predict(self, batch: dict) -> torch.Tensor:
         """Normalised action (B, p) for the last window index (no random CoT mask)."""
         cfg = self.cfg
-        x, _ = self._features(batch, train=False)
-        valid = batch.get("valid")
+        feats = self._last_features(batch)
         if cfg.action_head == "mse":
-            return self.action_decoder(self._select(x, cfg.centre_from, valid)[:, -1]).float()
-        logits = self.centre_head(self._select(x, cfg.centre_from, valid)[:, -1]).float()
-        offsets = self.offset_head(self._select(x, cfg.offset_from, valid)[:, -1]).float()
+            return self.action_decoder(feats[cfg.centre_from]).float()
+        logits = self.centre_head(feats[cfg.centre_from]).float()
+        offsets = self.offset_head(feats[cfg.offset_from]).float()
         c = logits.argmax(-1)
         off = offsets.view(-1, cfg.n_centres, self.action_dim)[torch.arange(c.shape[0], device=c.device), c]
         return self.centres[c] + off

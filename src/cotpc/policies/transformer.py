@@ -96,11 +96,15 @@ class Block(nn.Module):
         self.mlp = nn.Sequential(nn.Linear(d, 4 * d), nn.GELU(), nn.Linear(4 * d, d), nn.Dropout(dropout))
         self.resid_drop = nn.Dropout(dropout)
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, mask: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
+        """``rows``: compute the output of these token positions only (every token is still attended to)."""
         B, L, D = x.shape
-        q, k, v = self.qkv(self.ln1(x)).view(B, L, 3, self.n_heads, D // self.n_heads).permute(2, 0, 3, 1, 4)
+        H = self.n_heads
+        q, k, v = self.qkv(self.ln1(x)).view(B, L, 3, H, D // H).permute(2, 0, 3, 1, 4)
+        if rows is not None:  # inference: the action heads read a few tokens of the last block only
+            q, x, mask = q[:, :, rows], x[:, rows], mask[..., rows, :]
         y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=self.dropout if self.training else 0.0)
-        x = x + self.resid_drop(self.proj(y.transpose(1, 2).reshape(B, L, D)))
+        x = x + self.resid_drop(self.proj(y.transpose(1, 2).reshape(B, x.shape[1], D)))
         return x + self.mlp(self.ln2(x))
 
 
@@ -131,11 +135,13 @@ class GPT(nn.Module):
         valid: torch.Tensor | None = None,
         cot_hide: torch.Tensor | None = None,
         keep_layer: int | None = None,
+        rows: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor | None]:
         """states (B,T,q) normalised, actions (B,T-1,p) normalised, timesteps (B,T) long.
 
         Returns the final LayerNorm'd features (B, L, d) and, if ``keep_layer`` is set, the raw output of that
-        block (for the CoT decoder).
+        block (for the CoT decoder). With ``rows`` (token positions) the last block computes only those tokens
+        and the features are (B, len(rows), d): at inference the action heads need two or three of them.
         """
         B, T, _ = states.shape
         lay = self.layout
@@ -156,8 +162,9 @@ class GPT(nn.Module):
         else:
             mask = build_mask(lay, valid, cot_hide if lay.C else None)
         kept = None
+        last = len(self.blocks) - 1
         for j, block in enumerate(self.blocks):
-            x = block(x, mask)
+            x = block(x, mask, rows if j == last else None)
             if j == keep_layer:
                 kept = x
         return self.ln_f(x), kept
