@@ -44,6 +44,9 @@ class MazeReproduce:
     """Validation configs (own seed range): evaluated and reported, for choosing settings without the test set."""
     batch_size: Optional[int] = None
     """Training batch size (default: the paper's 256; 64 with --quick)."""
+    n_centres: Optional[int] = None
+    """k-means centres of the BeT-style heads (bet, cotpc, ablations). Default: the paper's 1024 for its 200K
+    iterations; 128 with --quick, chosen on the validation configs for short schedules (docs/results/maze.md)."""
     workers: int = 2
     """Processes for demo generation."""
     device: str = "auto"
@@ -68,7 +71,8 @@ def main(argv: list[str], prog: str) -> None:
         test_demos=cfg.test_demos,
         val_demos=cfg.val_demos,
         workers=cfg.workers,
-        extra_train_args={"device": cfg.device, "batch_size": cfg.batch_size or quick.get("batch_size")},
+        extra_train_args={"device": cfg.device, "batch_size": cfg.batch_size or quick.get("batch_size"),
+                          "n_centres": cfg.n_centres or quick.get("n_centres")},
     )
     results = run(settings)
     print()

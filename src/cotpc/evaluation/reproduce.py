@@ -173,7 +173,8 @@ def write_report(results: dict, out: Path) -> Path:
         f"{s['train_demos']} training demos (seen configs), {s.get('val_demos', 0)} validation configs, "
         f"{s['test_demos']} test demos (unseen configs), "
         f"subskills: {s['cost']} cost, beta {s['beta']}, {s['iters']} training iterations per run at batch "
-        f"{s['extra_train_args'].get('batch_size') or 'default (256; bc 32)'}, {s['seeds']} seed(s) per policy, "
+        f"{s['extra_train_args'].get('batch_size') or 'default (256; bc 32)'}, "
+        f"{s['extra_train_args'].get('n_centres') or 'default (1024)'} k-means centres, {s['seeds']} seed(s) per policy, "
         f"horizon {meta['horizon']}.  ",
         f"Checkpoints: {meta['checkpoint_selection']}.  ",
         f"Training {meta.get('train_seconds_total', 0) / 60:.1f} min in all, this invocation "
