@@ -22,6 +22,8 @@ def test_reproduce_runs_end_to_end_and_resumes(tmp_path, capsys):
             assert len(episodes) == n
     assert results["meta"]["ablations"] == ["vanilla"]
     assert results["meta"]["settings"]["iters"] == 6
+    # --quick trains the BeT-style heads with 128 k-means centres (chosen on validation configs)
+    assert json.loads((out / "runs" / "cotpc" / "seed0" / "config.json").read_text())["policy"]["n_centres"] == 128
     report = (out / "report.md").read_text()
     assert "| cotpc |" in report and "| vanilla |" in report and "| cotpc (full method, seed 0) |" in report
     assert (out / "success.png").exists() and (out / "learning_curves.png").exists()
