@@ -31,7 +31,14 @@ def test_reproduce_runs_end_to_end_and_resumes(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "report:" in printed
 
-    # A second call reuses the finished runs instead of training again.
-    weights = (out / "runs" / "cotpc" / "seed0" / "model.safetensors").stat().st_mtime_ns
+    # A second call reuses the finished runs and their evaluations instead of doing them again; an evaluation
+    # that is missing is redone and gives the same numbers.
+    run = out / "runs" / "cotpc" / "seed0"
+    weights = (run / "model.safetensors").stat().st_mtime_ns
+    evaluated = (run / "eval_val.json").stat().st_mtime_ns
+    (run / "eval_unseen.json").unlink()
     cotpc_main(argv)
-    assert (out / "runs" / "cotpc" / "seed0" / "model.safetensors").stat().st_mtime_ns == weights
+    assert (run / "model.safetensors").stat().st_mtime_ns == weights
+    assert (run / "eval_val.json").stat().st_mtime_ns == evaluated
+    assert (run / "eval_unseen.json").exists()
+    assert json.loads((out / "results.json").read_text())["cotpc"] == results["cotpc"]

@@ -61,7 +61,7 @@ def _stats(rates: list[float]) -> dict:
 def run(s: ReproduceSettings) -> dict:
     from cotpc import load_policy
     from cotpc.cli.demos import MazeDemos, run_maze
-    from cotpc.evaluation.maze import evaluate
+    from cotpc.evaluation.maze import evaluate, load_split_configs
     from cotpc.subskills.labeling import label_file
     from cotpc.training.train import TrainConfig, train
 
@@ -79,7 +79,8 @@ def run(s: ReproduceSettings) -> dict:
     # 2. unsupervised subskills on the training demos (cheap: always re-labelled with this beta)
     print(f"[2/5] subskill discovery, {s.cost} cost, beta={s.beta}", flush=True)
     seg, _ = label_file(demos / "train.h5", beta=s.beta, min_size=1, cost=s.cost)
-    # 3. training, 4. evaluation
+    # 3. training, 4. evaluation (an evaluation already on disk for the same weights and configs is reused)
+    split_seeds = {split: load_split_configs(demos, split)[1] for split, _ in EVAL_KEYS.values()}
     results: dict = {}
     timings: dict = {}
     names = list(s.policies) + [a for a in s.ablations if a not in s.policies]
@@ -108,13 +109,17 @@ def run(s: ReproduceSettings) -> dict:
             # Training time as measured when the run was trained (possibly by an earlier invocation).
             timing = run_dir / "timing.json"
             timings[f"{name}/seed{seed}"] = json.loads(timing.read_text())["train_seconds"] if timing.exists() else None
-            policy = load_policy(run_dir)
+            policy = None
             for key, (split, deadly) in EVAL_KEYS.items():
-                video = out / "videos" / name if (key == "unseen" and seed == 0) else None
-                r = evaluate(policy, demos, split, video_dir=video, num_videos=2, deadly_gaps=deadly)
-                r.to_json(run_dir / f"eval_{key}.json")
-                per_split[key].append(100 * r.success_rate)
-                transitions[key].append(float(r.region_transitions.mean()))
+                summary = _cached_eval(run_dir, key, split_seeds[split], deadly)
+                if summary is None:
+                    policy = policy or load_policy(run_dir)
+                    video = out / "videos" / name if (key == "unseen" and seed == 0) else None
+                    r = evaluate(policy, demos, split, video_dir=video, num_videos=2, deadly_gaps=deadly)
+                    r.to_json(run_dir / f"eval_{key}.json")
+                    summary = r.summary()
+                per_split[key].append(100 * summary["success_rate"])
+                transitions[key].append(summary["mean_region_transitions"])
             print(
                 f"[4/5] {name} seed {seed}: seen {per_split['seen'][-1]:.1f}%  val {per_split['val'][-1]:.1f}%  "
                 f"unseen {per_split['unseen'][-1]:.1f}%  (deadly gaps: seen {per_split['seen_deadly_gaps'][-1]:.1f}%  "
@@ -151,6 +156,20 @@ def _cpu_count() -> int:
     import os
 
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def _cached_eval(run_dir: Path, key: str, seeds: list[int], deadly: bool) -> dict | None:
+    """The summary of ``eval_<key>.json`` if it was written after the current weights, for exactly these
+    configuration seeds and gap rule; else None (evaluate again)."""
+    path, weights = run_dir / f"eval_{key}.json", run_dir / "model.safetensors"
+    if not path.exists() or path.stat().st_mtime_ns < weights.stat().st_mtime_ns:
+        return None
+    try:
+        saved = json.loads(path.read_text())
+        same = [e["seed"] for e in saved["episodes"]] == list(seeds) and saved["summary"]["deadly_gaps"] == deadly
+    except (ValueError, KeyError, TypeError):
+        return None
+    return saved["summary"] if same else None
 
 
 def _finished(run_dir: Path, iters: int) -> bool:
