@@ -33,7 +33,8 @@ class MazeReproduce:
     policies: Optional[tuple[str, ...]] = None
     """Policies to compare (default: bc dt bet cotpc; with --quick: bet cotpc)."""
     ablations: Optional[tuple[str, ...]] = None
-    """CoTPC ablation presets (default: all of the paper's Table 4; none with --quick)."""
+    """CoTPC ablation presets, one seed each (default: all nine of the paper's Table 4; none with --quick).
+    `--ablations` followed by no names runs none."""
     beta: Optional[float] = None
     """Subskill discovery beta (default: the maze default chosen in docs/subskills.md)."""
     cost: Optional[str] = None
