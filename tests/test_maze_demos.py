@@ -122,3 +122,19 @@ def test_planner_region_matches_the_environment():
     vector = region_of(points, np.full(2000, 70.0), np.tile([12.0, 40.0, 8.0], (2000, 1)))
     scalar = np.array([maze.region(x, y) for x, y in points])
     np.testing.assert_array_equal(vector, scalar)
+
+
+def test_demos_for_the_moved_landing_rule(tmp_path):
+    from cotpc.evaluation.maze import ReplayPolicy, evaluate, load_split_configs, rollout
+
+    cotpc_main(["demos", "maze", "--out", str(tmp_path), "--train", "12", "--test", "0", "--val", "0",
+                "--landing", "moved"])
+    data = load_trajectories(tmp_path / "train.h5")
+    assert data.env_info["env_kwargs"] == {"landing": "moved"}
+    # evaluation reads the rule from the file: every demo replays to success under it...
+    replay = ReplayPolicy([ep.actions for ep in data.episodes])
+    assert evaluate(replay, tmp_path, "seen").success_rate == 1.0
+    # ...and the same actions under the other rule mostly miss the blocks
+    configs, seeds = load_split_configs(tmp_path, "seen")
+    result, _ = rollout(replay, configs, seeds, "seen", landing="observed")
+    assert result.success_rate < 0.5

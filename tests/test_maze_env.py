@@ -242,3 +242,25 @@ def test_deadly_gaps_in_the_gym_env():
     env.unwrapped._batch.agent[0] = (40.0, 61.0)
     _, reward, terminated, truncated, info = env.step(np.array([0.0, -3.0]))
     assert terminated and not truncated and reward == 0.0 and info["fell"] and not info["success"]
+
+
+def test_landing_rule_moved_checks_where_the_blocks_will_be():
+    # Bridge 1 spans x in [5, 15] at x=10 and moves right by 2 per step. A step down to x=6 lands on it as
+    # observed, but after the bridge has moved (x in [7, 17]) that point is in the gap.
+    cfg = make_config(bridge1_x=10.0, velocities=(2.0, 1.5, 1.5))
+    for landing, lands in (("observed", True), ("moved", False)):
+        env = MovingMazeBatch([cfg], landing=landing)
+        env.agent[0] = (6.0, 61.0)
+        obs, _, _ = env.step([[0.0, -3.0]])
+        assert (obs[0, 1] == 58.0) == lands, landing
+    # Under "moved" the agent lands where the bridge will be, and the bridge stops there for good.
+    env = MovingMazeBatch([cfg], landing="moved")
+    env.agent[0] = (16.0, 61.0)  # beyond the observed bridge (x <= 15), within the moved one (x <= 17)
+    obs, _, _ = env.step([[0.0, -3.0]])
+    np.testing.assert_allclose(obs[0, :2], [16.0, 58.0])
+    assert env.frozen[0, 0] and obs[0, 4] == 12.0
+    obs, _, _ = env.step([[0.0, 0.0]])
+    assert obs[0, 4] == 12.0
+    with pytest.raises(ValueError, match="landing"):
+        MovingMazeBatch([cfg], landing="later")
+    assert gym.make(MAZE_ENV_ID, landing="moved").unwrapped.landing == "moved"

@@ -29,6 +29,10 @@ class MazeDemos:
     """Offset into each split's seed range: demo i of a split uses that split's seed start + seed + i."""
     workers: int = 1
     """Processes used for planning (demos are identical for any number of workers)."""
+    landing: Literal["observed", "moved"] = "observed"
+    """When the blocks move within a step: 'observed' checks a move against the block positions the agent saw;
+    'moved' moves the blocks first (the agent must anticipate them). Stored in the files' env_kwargs, which
+    `cotpc eval` uses."""
 
 
 def run_maze(cfg: MazeDemos) -> dict[str, Path]:
@@ -36,7 +40,8 @@ def run_maze(cfg: MazeDemos) -> dict[str, Path]:
     from cotpc.demos.maze import generate_splits
 
     start = time.perf_counter()
-    sets = generate_splits(cfg.train, cfg.test, seed=cfg.seed, workers=cfg.workers, num_val=cfg.val)
+    sets = generate_splits(cfg.train, cfg.test, seed=cfg.seed, workers=cfg.workers, num_val=cfg.val,
+                           landing=cfg.landing)
     paths = {}
     for split, trajectories in sets.items():
         if len(trajectories) == 0:

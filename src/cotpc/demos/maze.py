@@ -19,6 +19,8 @@ in the new region. They are for scoring unsupervised subskill discovery only, ne
 
 from __future__ import annotations
 
+import functools
+
 import time
 from dataclasses import dataclass
 
@@ -150,8 +152,11 @@ def _back_simulate(position: float, velocity: float, steps: int, lo: float, hi: 
     return p, -v
 
 
-def plan_demo(seed: int, max_attempts: int = 200) -> tuple[MazeConfig, np.ndarray, np.ndarray, np.ndarray]:
-    """Plan one verified demo for ``seed``: returns (config, obs (N+1, 10), actions (N, 2), key_steps (5,))."""
+def plan_demo(
+    seed: int, max_attempts: int = 200, landing: str = "observed"
+) -> tuple[MazeConfig, np.ndarray, np.ndarray, np.ndarray]:
+    """Plan one verified demo for ``seed``: returns (config, obs (N+1, 10), actions (N, 2), key_steps (5,)).
+    ``landing``: the environment's rule for when blocks move within a step (see MovingMazeBatch)."""
     rng = np.random.default_rng(seed)
     for _ in range(max_attempts):
         start_y = rng.uniform(*START_Y_RANGE)
@@ -174,18 +179,20 @@ def plan_demo(seed: int, max_attempts: int = 200) -> tuple[MazeConfig, np.ndarra
                 continue
             actions = np.array(actions)
             waypoints = agent + np.concatenate([np.zeros((1, 2)), np.cumsum(actions, axis=0)])
-            config = _animate(rng, maze, agent, waypoints)
+            config = _animate(rng, maze, agent, waypoints, landing)
             if config is None:
                 continue
-            result = _replay(config, actions)
+            result = _replay(config, actions, landing)
             if result is not None:
                 obs, key_steps = result
                 return config, obs, actions.astype(np.float32), key_steps
     raise RuntimeError(f"Moving Maze demonstrator: no successful demo for seed {seed} in {max_attempts} attempts")
 
 
-def _animate(rng, maze: _StaticMaze, agent: np.ndarray, waypoints: np.ndarray) -> MazeConfig | None:
+def _animate(rng, maze: _StaticMaze, agent: np.ndarray, waypoints: np.ndarray, landing: str) -> MazeConfig | None:
     """Choose speeds, directions and initial positions so each block is under the agent when it lands."""
+    # The landing move of action t is checked after t block moves ("observed") or t + 1 ("moved").
+    extra = 1 if landing == "moved" else 0
     planned = [maze.bridge1_x, maze.bridge2_x, maze.target_y]
     rects = [maze.bridge1, maze.bridge2, maze.target]
     initial, velocities = [], []
@@ -194,7 +201,7 @@ def _animate(rng, maze: _StaticMaze, agent: np.ndarray, waypoints: np.ndarray) -
         if not landed:
             return None
         speed = rng.uniform(*SPEED_RANGE) * rng.choice([-1.0, 1.0])
-        p0, v0 = _back_simulate(planned[b], speed, landed[0], *MOVING_RANGES[b])
+        p0, v0 = _back_simulate(planned[b], speed, landed[0] + extra, *MOVING_RANGES[b])
         initial.append(float(np.clip(p0, *MOVING_RANGES[b])))
         velocities.append(float(v0))
     return MazeConfig(
@@ -207,9 +214,9 @@ def _animate(rng, maze: _StaticMaze, agent: np.ndarray, waypoints: np.ndarray) -
     )
 
 
-def _replay(config: MazeConfig, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+def _replay(config: MazeConfig, actions: np.ndarray, landing: str) -> tuple[np.ndarray, np.ndarray] | None:
     """Run the actions in the real environment; (obs, key_steps) if it succeeds exactly at the last step."""
-    env = MovingMazeBatch([config])
+    env = MovingMazeBatch([config], landing=landing)
     obs = [env.obs()[0]]
     regions = [int(region_of(env.agent, env.start_y, env.moving)[0])]
     for t, action in enumerate(actions):
@@ -228,17 +235,18 @@ def _replay(config: MazeConfig, actions: np.ndarray) -> tuple[np.ndarray, np.nda
     return np.array(obs, dtype=np.float32), key_steps
 
 
-def generate(seeds: np.ndarray, split: str, workers: int = 1) -> TrajectorySet:
+def generate(seeds: np.ndarray, split: str, workers: int = 1, landing: str = "observed") -> TrajectorySet:
     """Demos for the given configuration seeds (all must belong to ``split``)."""
     for seed in seeds:
         check_seed(int(seed), split)
+    plan = functools.partial(plan_demo, landing=landing)
     if workers > 1:
         from concurrent.futures import ProcessPoolExecutor
 
         with ProcessPoolExecutor(workers) as pool:
-            plans = list(pool.map(plan_demo, [int(s) for s in seeds], chunksize=16))
+            plans = list(pool.map(plan, [int(s) for s in seeds], chunksize=16))
     else:
-        plans = [plan_demo(int(s)) for s in seeds]
+        plans = [plan(int(s)) for s in seeds]
     episodes = []
     for i, (seed, (config, obs, actions, key_steps)) in enumerate(zip(seeds, plans)):
         success = np.zeros(len(actions), dtype=bool)
@@ -255,7 +263,7 @@ def generate(seeds: np.ndarray, split: str, workers: int = 1) -> TrajectorySet:
                 extra_attrs={"key_steps": {"description": "index of the first state in each new region (1..5)"}},
             )
         )
-    env_info = {"env_id": ENV_ID, "env_kwargs": {}, "max_episode_steps": HORIZON}
+    env_info = {"env_id": ENV_ID, "env_kwargs": {"landing": landing}, "max_episode_steps": HORIZON}
     meta = {
         "source_type": "motion_planning",
         "source_desc": "cotpc Moving Maze demonstrator: RRT-style legs on a static maze, blocks animated in hindsight",
@@ -265,7 +273,7 @@ def generate(seeds: np.ndarray, split: str, workers: int = 1) -> TrajectorySet:
 
 
 def generate_splits(
-    num_train: int, num_test: int, seed: int = 0, workers: int = 1, num_val: int = 0
+    num_train: int, num_test: int, seed: int = 0, workers: int = 1, num_val: int = 0, landing: str = "observed"
 ) -> dict[str, TrajectorySet]:
     """Demos of each split from its own seed range: train (the seen configs), val (validation configs for
     selection and diagnostics) and test (the unseen configs). Splits with 0 demos are left out."""
@@ -273,7 +281,7 @@ def generate_splits(
 
     start = time.perf_counter()
     sizes = {"train": num_train, "val": num_val, "test": num_test}
-    sets = {split: generate(seeds_for(split, n, seed), split, workers) for split, n in sizes.items() if n > 0}
+    sets = {split: generate(seeds_for(split, n, seed), split, workers, landing) for split, n in sizes.items() if n > 0}
     for s in sets.values():
         s.meta["generation_seconds_total"] = round(time.perf_counter() - start, 3)
     return sets

@@ -58,6 +58,7 @@ ISLAND_SPLIT_X = (25.0, 30.0, 35.0)  # top, middle, bottom
 # Seeds of configurations: disjoint ranges per split, enforced by seeds_for / check_seed.
 SEED_RANGES = {"train": (0, 1_000_000), "val": (1_000_000, 2_000_000), "test": (2_000_000, 3_000_000)}
 OBS_DIM, ACTION_DIM = 10, 2
+LANDING_RULES = ("observed", "moved")  # when the blocks move within a step (see MovingMazeBatch)
 
 
 def seeds_for(split: str, num: int, offset: int = 0) -> np.ndarray:
@@ -231,15 +232,25 @@ class MovingMazeBatch:
     ``deadly_gaps`` picks the rule for a move that ends inside the maze but off walkable ground (in a gap where
     no block is at that moment): ``False`` (default) leaves the agent where it is; ``True`` makes the agent fall
     and ends the episode as a failure. Moves that would leave the maze are blocked under both rules (the paper:
-    the agent "cannot cross the borders ... but will not die from doing so"). See docs/moving-maze.md.
+    the agent "cannot cross the borders ... but will not die from doing so").
+
+    ``landing`` picks when the blocks move within a step: ``"observed"`` (default) checks the move against the
+    block positions the agent observed, then the blocks move; ``"moved"`` moves the blocks first, so a move must
+    land where a block *will* be, which a policy can only judge from the blocks' motion over several
+    observations. The demonstrator plans for either (see docs/moving-maze.md).
     """
 
-    def __init__(self, configs: list[MazeConfig], horizon: int = HORIZON, deadly_gaps: bool = False):
+    def __init__(
+        self, configs: list[MazeConfig], horizon: int = HORIZON, deadly_gaps: bool = False, landing: str = "observed"
+    ):
         if not configs:
             raise ValueError("MovingMazeBatch needs at least one config")
+        if landing not in LANDING_RULES:
+            raise ValueError(f"landing must be one of {LANDING_RULES}, got {landing!r}")
         self.configs = list(configs)
         self.horizon = horizon
         self.deadly_gaps = deadly_gaps
+        self.landing = landing
         self.reset()
 
     @property
@@ -289,8 +300,10 @@ class MovingMazeBatch:
         """Apply (B, 2) displacements. Returns (obs, success, done); done = success, fallen or horizon reached."""
         actions = np.clip(check_actions(actions, self.num_envs), -MAX_ACTION, MAX_ACTION)
         active = ~self.success & ~self.fallen & (self.elapsed < self.horizon)
-        # The move is checked against the block positions the agent observed; a move that would leave walkable
-        # ground leaves the agent where it is. Every gap (>= 5) is wider than the largest step (4 per component),
+        if self.landing == "moved":  # the blocks move first: the move is checked against where they are now
+            self.moving, self.velocity = advance_blocks(self.moving, self.velocity, self.frozen | ~active[:, None])
+        # With landing="observed" the move is checked against the block positions the agent observed; a move that
+        # would leave walkable ground leaves the agent where it is. Every gap (>= 5) is wider than the largest step (4 per component),
         # so checking the end point is enough: no move can jump a gap.
         proposal = self.agent + actions
         ok = active & walkable(proposal, self.start_y, self.moving)
@@ -300,7 +313,8 @@ class MovingMazeBatch:
         # A moving block the agent stands on stops for good.
         on_block = inside(self.agent, block_rects(self.start_y, self.moving))[:, 1:]
         self.frozen |= on_block & active[:, None]
-        self.moving, self.velocity = advance_blocks(self.moving, self.velocity, self.frozen | ~active[:, None])
+        if self.landing == "observed":
+            self.moving, self.velocity = advance_blocks(self.moving, self.velocity, self.frozen | ~active[:, None])
         self.success |= active & on_block[:, 2]
         self.elapsed += active
         region = region_of(self.agent, self.start_y, self.moving)
@@ -322,10 +336,14 @@ class MovingMazeEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
-    def __init__(self, render_mode: str | None = "rgb_array", horizon: int = HORIZON, deadly_gaps: bool = False):
+    def __init__(
+        self, render_mode: str | None = "rgb_array", horizon: int = HORIZON, deadly_gaps: bool = False,
+        landing: str = "observed",
+    ):
         self.render_mode = render_mode
         self.horizon = horizon
         self.deadly_gaps = deadly_gaps
+        self.landing = landing
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(OBS_DIM,), dtype=np.float32)
         self.action_space = gym.spaces.Box(-MAX_ACTION, MAX_ACTION, shape=(ACTION_DIM,), dtype=np.float32)
         self._batch: MovingMazeBatch | None = None
@@ -337,7 +355,7 @@ class MovingMazeEnv(gym.Env):
         else:
             config = sample_config(self.np_random)
         self.config = config
-        self._batch = MovingMazeBatch([config], horizon=self.horizon, deadly_gaps=self.deadly_gaps)
+        self._batch = MovingMazeBatch([config], horizon=self.horizon, deadly_gaps=self.deadly_gaps, landing=self.landing)
         return self._batch.obs()[0], self._info()
 
     def step(self, action):

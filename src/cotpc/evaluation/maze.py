@@ -54,6 +54,12 @@ def load_split_configs(demo_dir: str | Path, split: str, episodes: int | None = 
     return configs, seeds
 
 
+def split_env_kwargs(demo_dir: str | Path, split: str) -> dict:
+    """``env_kwargs`` of a split's demo file (the environment rules its configs were made for)."""
+    name, _ = SPLIT_FILES[split]
+    return json.loads((Path(demo_dir) / f"{name}.json").read_text()).get("env_info", {}).get("env_kwargs", {})
+
+
 @dataclass
 class EvalResult:
     split: str
@@ -97,11 +103,12 @@ def rollout(
     horizon: int = HORIZON,
     record: int = 0,
     deadly_gaps: bool = False,
+    landing: str = "observed",
 ) -> tuple[EvalResult, list[list[np.ndarray]]]:
     """Roll ``policy`` out in all ``configs`` at once. Returns the result and, for the first ``record`` episodes,
     the agent positions and block states needed to draw them."""
     start = time.perf_counter()
-    env = MovingMazeBatch(configs, horizon=horizon, deadly_gaps=deadly_gaps)
+    env = MovingMazeBatch(configs, horizon=horizon, deadly_gaps=deadly_gaps, landing=landing)
     obs = env.reset()
     policy.reset()
     steps = np.full(len(configs), horizon)
@@ -122,7 +129,7 @@ def rollout(
         steps=steps,
         seeds=list(seeds),
         seconds=time.perf_counter() - start,
-        meta={"deadly_gaps": deadly_gaps, "fell": int(env.fallen.sum())},
+        meta={"deadly_gaps": deadly_gaps, "landing": landing, "fell": int(env.fallen.sum())},
     )
     return result, frames
 
@@ -159,8 +166,9 @@ def evaluate(
     ``deadly_gaps``: a step into a gap ends the episode as a failure instead of being blocked (see
     :class:`cotpc.envs.moving_maze.MovingMazeBatch`)."""
     configs, seeds = load_split_configs(demo_dir, split, episodes)
+    landing = split_env_kwargs(demo_dir, split).get("landing", "observed")  # the rule the demos were planned for
     record = min(num_videos, len(configs)) if video_dir else 0
-    result, frames = rollout(policy, configs, seeds, split, record=record, deadly_gaps=deadly_gaps)
+    result, frames = rollout(policy, configs, seeds, split, record=record, deadly_gaps=deadly_gaps, landing=landing)
     if video_dir:
         result.meta["videos"] = [str(p) for p in write_videos(frames, seeds, result.success, video_dir)]
     return result
