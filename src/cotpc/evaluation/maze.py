@@ -35,6 +35,12 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
 def load_split_configs(demo_dir: str | Path, split: str, episodes: int | None = None) -> tuple[list[MazeConfig], list[int]]:
     """Configs (and their seeds) of ``seen`` (the training demos), ``val`` (the validation demos) or ``unseen``
     (the test demos)."""
+    configs, seeds, _ = _load_split(demo_dir, split, episodes)
+    return configs, seeds
+
+
+def _load_split(demo_dir: str | Path, split: str, episodes: int | None) -> tuple[list[MazeConfig], list[int], dict]:
+    """Configs, seeds and ``env_kwargs`` (the environment rules the configs were made for) of a split."""
     if split not in SPLIT_FILES:
         raise ValueError(f"split must be one of {sorted(SPLIT_FILES)}, got {split!r}")
     name, seed_split = SPLIT_FILES[split]
@@ -51,13 +57,7 @@ def load_split_configs(demo_dir: str | Path, split: str, episodes: int | None = 
         check_seed(seed, seed_split)  # never evaluate "unseen" on a training config, or the reverse
         configs.append(MazeConfig.from_dict(ep.reset_kwargs["options"]["config"]))
         seeds.append(seed)
-    return configs, seeds
-
-
-def split_env_kwargs(demo_dir: str | Path, split: str) -> dict:
-    """``env_kwargs`` of a split's demo file (the environment rules its configs were made for)."""
-    name, _ = SPLIT_FILES[split]
-    return json.loads((Path(demo_dir) / f"{name}.json").read_text()).get("env_info", {}).get("env_kwargs", {})
+    return configs, seeds, data.env_info.get("env_kwargs", {})
 
 
 @dataclass
@@ -165,8 +165,8 @@ def evaluate(
 
     ``deadly_gaps``: a step into a gap ends the episode as a failure instead of being blocked (see
     :class:`cotpc.envs.moving_maze.MovingMazeBatch`)."""
-    configs, seeds = load_split_configs(demo_dir, split, episodes)
-    landing = split_env_kwargs(demo_dir, split).get("landing", "observed")  # the rule the demos were planned for
+    configs, seeds, env_kwargs = _load_split(demo_dir, split, episodes)
+    landing = env_kwargs.get("landing", "observed")  # the rule the demos were planned for
     record = min(num_videos, len(configs)) if video_dir else 0
     result, frames = rollout(policy, configs, seeds, split, record=record, deadly_gaps=deadly_gaps, landing=landing)
     if video_dir:

@@ -80,7 +80,7 @@ def run(s: ReproduceSettings) -> dict:
     print(f"[2/5] subskill discovery, {s.cost} cost, beta={s.beta}", flush=True)
     seg, _ = label_file(demos / "train.h5", beta=s.beta, min_size=1, cost=s.cost)
     # 3. training, 4. evaluation (an evaluation already on disk for the same weights and configs is reused)
-    split_seeds = {split: load_split_configs(demos, split)[1] for split, _ in EVAL_KEYS.values()}
+    split_seeds = {split: load_split_configs(demos, split)[1] for split in {split for split, _ in EVAL_KEYS.values()}}
     results: dict = {}
     timings: dict = {}
     names = list(s.policies) + [a for a in s.ablations if a not in s.policies]
