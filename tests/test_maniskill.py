@@ -171,3 +171,34 @@ def test_ee_delta_pose_conversion(tmp_path):
     data = load_trajectories(tmp_path / "train.h5")
     assert data.action_dim == 7 and data.episodes[0].success[-1]
     assert data.episodes[0].control_mode == "pd_ee_delta_pose"
+
+
+def test_reproduce_maniskill_end_to_end_and_resumes(stack_demos, tmp_path):
+    import shutil
+
+    from cotpc.evaluation.reproduce_maniskill import ManiSkillStudySettings, run
+
+    demos = tmp_path / "StackCube-v1" / "demos"
+    shutil.copytree(stack_demos, demos)  # the fixture's 2 + 1 demos: generation finds them complete
+    settings = ManiSkillStudySettings(
+        out=tmp_path, envs=("StackCube-v1",), policies=("cotpc",), seeds=1, iters=2, num=2, test=1,
+        seen_episodes=1, horizon=12, procs=1, backend="cpu",
+        extra_train_args={"batch_size": 8, "d_model": 32, "n_layers": 1, "n_heads": 2, "n_centres": 8},
+    )
+    results = run(settings)
+    r = results["StackCube-v1"]["cotpc"]
+    for split in ("seen", "unseen"):
+        assert len(r[split]["runs"]) == 1 and 0 <= r[split]["mean"] <= 100
+        assert len(r[split]["success_at_end"]["runs"]) == 1
+        summary = json.loads((tmp_path / "StackCube-v1/runs/cotpc/seed0" / f"eval_{split}.json").read_text())["summary"]
+        assert summary["horizon"] == 12 and summary["episodes"] == 1
+        assert summary["success_once"] * 100 == r[split]["mean"]
+    assert json.loads((tmp_path / "results.json").read_text())["meta"]["paper"]["StackCube-v1"]["results"]["cotpc"] == 86.0
+    report = (tmp_path / "report.md").read_text()
+    assert "## StackCube-v1" in report and "| cotpc |" in report and (tmp_path / "learning_curves_StackCube-v1.png").exists()
+    # A second invocation reuses the demos, the trained weights and the evaluations.
+    weights = tmp_path / "StackCube-v1/runs/cotpc/seed0/model.safetensors"
+    evals = tmp_path / "StackCube-v1/runs/cotpc/seed0/eval_unseen.json"
+    stamps = (weights.stat().st_mtime_ns, evals.stat().st_mtime_ns)
+    assert run(settings)["StackCube-v1"]["cotpc"] == r
+    assert (weights.stat().st_mtime_ns, evals.stat().st_mtime_ns) == stamps

@@ -1,10 +1,10 @@
-"""``cotpc reproduce maze``: the whole Moving Maze study in one command (see cotpc/evaluation/reproduce.py)."""
+"""``cotpc reproduce {maze,maniskill}``: a whole study in one command (see cotpc/evaluation/reproduce*.py)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Literal, Optional
 
 import tyro
 
@@ -56,11 +56,53 @@ class MazeReproduce:
     """Training device (auto: cuda if available)."""
 
 
+@dataclass
+class ManiSkillReproduce:
+    """ManiSkill3 tasks (needs `pip install -e '.[maniskill]'`): planner demos -> unsupervised subskills ->
+    training of each policy and seed -> success_once / success_at_end on seen and unseen seeds ->
+    OUT/report.md, OUT/results.json and learning curves. The defaults are the paper's schedule (meant for a GPU);
+    re-running continues an interrupted run."""
+
+    out: Path = Path("runs/maniskill")
+    """Output directory (<task>/demos/, <task>/runs/<policy>/seed<k>/, report.md, results.json)."""
+    envs: tuple[str, ...] = ("StackCube-v1", "PegInsertionSide-v1")
+    """ManiSkill3 tasks with a motion planner."""
+    policies: tuple[str, ...] = ("bc", "dt", "bet", "cotpc")
+    """Policies to train and compare."""
+    seeds: int = 3
+    """Training seeds per policy."""
+    iters: int = 200_000
+    """Training iterations per run (the paper's 200K)."""
+    batch_size: Optional[int] = None
+    """Training batch size (default: the paper's, 256; bc 32)."""
+    n_centres: Optional[int] = None
+    """k-means centres of the BeT-style heads (default: the paper's 128 for ManiSkill)."""
+    num: Optional[int] = None
+    """Training demos per task (default: the paper's, 500 Stack Cube and 1000 Peg Insertion)."""
+    test: int = 100
+    """Test demos per task: their seeds are the unseen evaluation set."""
+    seen_episodes: Optional[int] = 100
+    """Evaluate seen success on the first N training seeds (default 100; 0 = all)."""
+    control_mode: Literal["pd_joint_delta_pos", "pd_ee_delta_pose"] = "pd_joint_delta_pos"
+    """Action space of the demos and policies."""
+    horizon: Optional[int] = None
+    """Steps per evaluation episode (default: the paper's, 200)."""
+    procs: int = 2
+    """Processes for demo generation and CPU evaluation."""
+    backend: Literal["auto", "cpu", "gpu"] = "auto"
+    """Evaluation simulator: gpu = ManiSkill3's GPU-parallel simulation, cpu = process pool; auto = gpu with CUDA."""
+    device: str = "auto"
+    """Training device (auto: cuda if available)."""
+
+
 def main(argv: list[str], prog: str) -> None:
+    cfg = tyro.extras.subcommand_cli_from_dict({"maze": MazeReproduce, "maniskill": ManiSkillReproduce}, args=argv,
+                                               prog=prog)
+    if isinstance(cfg, ManiSkillReproduce):
+        return main_maniskill(cfg)
     from cotpc.evaluation.reproduce import ABLATIONS, BASELINES, ReproduceSettings, run
     from cotpc.subskills import MAZE_DEFAULT_BETA, MAZE_DEFAULT_COST
 
-    cfg = tyro.extras.subcommand_cli_from_dict({"maze": MazeReproduce}, args=argv, prog=prog)
     quick = QUICK if cfg.quick else {}
     settings = ReproduceSettings(
         out=cfg.out,
@@ -87,3 +129,21 @@ def main(argv: list[str], prog: str) -> None:
     videos = sorted((cfg.out / "videos").glob("*/*.gif"))
     if videos:
         print(f"video:  {videos[-1]}")
+
+
+def main_maniskill(cfg: ManiSkillReproduce) -> None:
+    from cotpc.evaluation.reproduce_maniskill import ManiSkillStudySettings, run
+
+    results = run(ManiSkillStudySettings(
+        out=cfg.out, envs=tuple(cfg.envs), policies=tuple(cfg.policies), seeds=cfg.seeds, iters=cfg.iters,
+        num=cfg.num, test=cfg.test, seen_episodes=cfg.seen_episodes or None, control_mode=cfg.control_mode,
+        horizon=cfg.horizon, procs=cfg.procs, backend=cfg.backend,
+        extra_train_args={"device": cfg.device, "batch_size": cfg.batch_size, "n_centres": cfg.n_centres},
+    ))
+    print()
+    print(f"{'task':<22}{'policy':<10}{'seen %':>10}{'unseen %':>10}   (success_once, mean over seeds)")
+    for env_id, by_policy in results.items():
+        if env_id != "meta":
+            for name, r in by_policy.items():
+                print(f"{env_id:<22}{name:<10}{r['seen']['mean']:>10.1f}{r['unseen']['mean']:>10.1f}")
+    print(f"\nreport: {cfg.out / 'report.md'}")

@@ -63,7 +63,6 @@ def run(s: ReproduceSettings) -> dict:
     from cotpc.cli.demos import MazeDemos, run_maze
     from cotpc.evaluation.maze import evaluate, load_split_configs
     from cotpc.subskills.labeling import label_file
-    from cotpc.training.train import TrainConfig, train
 
     t_start = time.perf_counter()
     out = Path(s.out)
@@ -90,26 +89,8 @@ def run(s: ReproduceSettings) -> dict:
         transitions: dict = {key: [] for key in EVAL_KEYS}
         for seed in seeds:
             run_dir = out / "runs" / name / f"seed{seed}"
-            t0 = time.perf_counter()
-            if not _finished(run_dir, s.iters):
-                print(f"[3/5] train {name} seed {seed} ({s.iters} iters) -> {run_dir}", flush=True)
-                cfg = TrainConfig(
-                    data=demos / "train.h5",
-                    policy=name,
-                    out=run_dir,
-                    iters=s.iters,
-                    seed=seed,
-                    resume=(run_dir / "training_state.pt").exists(),
-                    progress=sys.stderr.isatty(),
-                    val_every=max(s.iters // 10, 1),  # ten points on the learning curve
-                    ckpt_every=max(s.iters // 10, 1),  # a killed study loses at most a tenth of one run
-                    **s.extra_train_args,
-                )
-                train(cfg)
-                (run_dir / "timing.json").write_text(json.dumps({"train_seconds": round(time.perf_counter() - t0, 1)}))
-            # Training time as measured when the run was trained (possibly by an earlier invocation).
-            timing = run_dir / "timing.json"
-            timings[f"{name}/seed{seed}"] = json.loads(timing.read_text())["train_seconds"] if timing.exists() else None
+            timings[f"{name}/seed{seed}"] = train_run(run_dir, demos / "train.h5", name, seed, s.iters,
+                                                       s.extra_train_args, step="[3/5]")
             policy = None
             for key, (split, deadly) in EVAL_KEYS.items():
                 summary = _cached_eval(run_dir, key, split_seeds[split], deadly)
@@ -171,6 +152,33 @@ def _cached_eval(run_dir: Path, key: str, seeds: list[int], deadly: bool) -> dic
     except (ValueError, KeyError, TypeError):
         return None
     return saved["summary"] if same else None
+
+
+def train_run(run_dir: Path, data: Path, policy: str, seed: int, iters: int, extra_train_args: dict,
+              step: str = "") -> float | None:
+    """Train ``policy`` into ``run_dir`` unless a finished run of ``iters`` iterations is there (resuming an
+    interrupted one). Returns the training seconds measured when the run was trained (maybe by an earlier call)."""
+    from cotpc.training.train import TrainConfig, train
+
+    t0 = time.perf_counter()
+    if not _finished(run_dir, iters):
+        print(f"{step} train {policy} seed {seed} ({iters} iters) -> {run_dir}".strip(), flush=True)
+        cfg = TrainConfig(
+            data=data,
+            policy=policy,
+            out=run_dir,
+            iters=iters,
+            seed=seed,
+            resume=(run_dir / "training_state.pt").exists(),
+            progress=sys.stderr.isatty(),
+            val_every=max(iters // 10, 1),  # ten points on the learning curve
+            ckpt_every=max(iters // 10, 1),  # a killed study loses at most a tenth of one run
+            **extra_train_args,
+        )
+        train(cfg)
+        (run_dir / "timing.json").write_text(json.dumps({"train_seconds": round(time.perf_counter() - t0, 1)}))
+    timing = run_dir / "timing.json"
+    return json.loads(timing.read_text())["train_seconds"] if timing.exists() else None
 
 
 def _finished(run_dir: Path, iters: int) -> bool:
@@ -264,13 +272,23 @@ def _plots(results: dict, out: Path, names: list[str]) -> list[Path]:
     paths.append(out / "success.png")
     fig.savefig(paths[-1], dpi=110)
     plt.close(fig)
-    # Learning curves of seed 0 of each policy (from TensorBoard logs): training and validation action loss.
-    # One panel per policy: the losses of MSE and centre/offset heads are not on one scale.
+    paths.append(plot_learning_curves(out / "runs", names, out / "learning_curves.png"))
+    return paths
+
+
+def plot_learning_curves(runs: Path, names: list[str], path: Path) -> Path:
+    """Training and validation action loss of ``runs/<name>/seed0`` for each name (from TensorBoard logs), one
+    panel per policy: the losses of MSE and centre/offset heads are not on one scale."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
     cols = min(4, len(names))
     rows = (len(names) + cols - 1) // cols
     fig, axes = plt.subplots(rows, cols, figsize=(3.0 * cols, 2.4 * rows), squeeze=False)
     for ax, n in zip(axes.flat, names):
-        logdir = out / "runs" / n / "seed0" / "tb"
+        logdir = runs / n / "seed0" / "tb"
         for tag, style in (("train/bc", "-"), ("val/bc", "o-")):
             steps, values = _scalar(logdir, tag)
             if steps:
@@ -283,10 +301,9 @@ def _plots(results: dict, out: Path, names: list[str]) -> list[Path]:
         ax.axis("off")
     fig.supylabel("action loss", fontsize=8)
     fig.tight_layout()
-    paths.append(out / "learning_curves.png")
-    fig.savefig(paths[-1], dpi=110)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
-    return paths
+    return path
 
 
 def _scalar(logdir: Path, tag: str) -> tuple[list[int], list[float]]:
