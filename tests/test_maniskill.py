@@ -122,6 +122,9 @@ def test_demos_replay_to_success_through_the_eval_path(stack_demos):
 
     firsts = [int(np.argmax(ep.success)) + 1 for ep in load_trajectories(stack_demos / "train.h5").episodes]
     assert list(result.first_success) == firsts  # the same step as in the demo
+    # Progress short of success: a successful demo grasped cube A and put it on cube B, and reached full reward.
+    assert s["stages_once"]["is_cubeA_grasped"] == 1.0 and s["stages_once"]["is_cubeA_on_cubeB"] == 1.0
+    assert s["mean_max_normalized_reward"] == pytest.approx(1.0)
 
 
 def test_resume_extends_a_split_with_the_same_demos(stack_demos, tmp_path):
@@ -158,7 +161,10 @@ def test_segment_train_and_eval(stack_demos, tmp_path):
     result = json.loads(out.read_text())
     s = result["summary"]
     assert s["env_id"] == "StackCube-v1" and s["split"] == "unseen" and s["episodes"] == 1 and s["horizon"] == 15
-    assert set(result["episodes"][0]) == {"seed", "success_once", "success_at_end", "first_success_step"}
+    assert set(result["episodes"][0]) == {"seed", "success_once", "success_at_end", "first_success_step",
+                                          "stages_once", "max_normalized_reward"}
+    assert set(s["stages_once"]) == {"is_cubeA_grasped", "is_cubeA_on_cubeB", "is_cubeA_static"}
+    assert 0 <= s["mean_max_normalized_reward"] <= 1
     SEEDS.check(result["episodes"][0]["seed"], "test")
 
 
@@ -190,12 +196,14 @@ def test_reproduce_maniskill_end_to_end_and_resumes(stack_demos, tmp_path):
     for split in ("seen", "unseen"):
         assert len(r[split]["runs"]) == 1 and 0 <= r[split]["mean"] <= 100
         assert len(r[split]["success_at_end"]["runs"]) == 1
+        assert set(r[split]["stages_once"]) == {"is_cubeA_grasped", "is_cubeA_on_cubeB", "is_cubeA_static"}
+        assert 0 <= r[split]["max_normalized_reward"] <= 1
         summary = json.loads((tmp_path / "StackCube-v1/runs/cotpc/seed0" / f"eval_{split}.json").read_text())["summary"]
         assert summary["horizon"] == 12 and summary["episodes"] == 1
         assert summary["success_once"] * 100 == r[split]["mean"]
     assert json.loads((tmp_path / "results.json").read_text())["meta"]["paper"]["StackCube-v1"]["results"]["cotpc"] == 86.0
     report = (tmp_path / "report.md").read_text()
-    assert "## StackCube-v1" in report and "| cotpc |" in report and (tmp_path / "learning_curves_StackCube-v1.png").exists()
+    assert "## StackCube-v1" in report and "| cotpc |" in report and "is_cubeA_grasped" in report and (tmp_path / "learning_curves_StackCube-v1.png").exists()
     # A second invocation reuses the demos, the trained weights and the evaluations.
     weights = tmp_path / "StackCube-v1/runs/cotpc/seed0/model.safetensors"
     evals = tmp_path / "StackCube-v1/runs/cotpc/seed0/eval_unseen.json"

@@ -5,7 +5,10 @@
   and hole sizes from the seed, so unseen seeds are unseen geometries too.
 - Each episode runs the full horizon (the paper's 200 steps for Stack Cube and Peg Insertion, see
   :data:`cotpc.envs.maniskill.HORIZONS`) with terminations ignored, and reports ``success_once`` (success at any
-  step) and ``success_at_end`` (at the last step), each with a 95% Wilson interval.
+  step) and ``success_at_end`` (at the last step), each with a 95% Wilson interval. Progress short of success is
+  reported too, like the maze's region transitions: the rate at which each of the task's boolean stage flags
+  (e.g. StackCube's ``is_cubeA_grasped``, ``is_cubeA_on_cubeB``) was ever true, and the mean over episodes of
+  the highest normalised dense reward reached (ManiSkill3's staged reward, in [0, 1]).
 - On CPU: a process pool, each process holding one environment and its own copy of the policy; every episode
   starts from a freshly built scene (``reset(seed, options={"reconfigure": True})``), so its result depends only
   on its seed and the policy, not on the process or the order. With CUDA (``backend="gpu"``): ManiSkill3's
@@ -32,6 +35,8 @@ from cotpc.envs.maniskill import HORIZONS, SEEDS
 from cotpc.evaluation.maze import wilson_interval
 
 SPLIT_FILES = {"seen": ("train", "train"), "unseen": ("test", "test")}  # split -> (demo file, seed range)
+# ManiSkill3's staged dense reward scaled to [0, 1]: its maximum over an episode measures progress short of success.
+REWARD_MODE = "normalized_dense"
 
 
 def load_split_seeds(demo_dir: str | Path, split: str, episodes: int | None = None) -> tuple[str, str, list[int]]:
@@ -63,6 +68,8 @@ class EvalResult:
     success_at_end: np.ndarray  # (E,) bool
     first_success: np.ndarray  # (E,) step (1-based) of the first success, -1 if never
     seconds: float
+    stages_once: dict[str, np.ndarray] = field(default_factory=dict)  # flag -> (E,) bool: ever true
+    max_reward: np.ndarray | None = None  # (E,) highest normalised dense reward of each episode
     meta: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
@@ -79,14 +86,19 @@ class EvalResult:
             "success_at_end": end / max(n, 1),
             "success_at_end_ci95": list(wilson_interval(end, n)),
             "mean_first_success_step": float(firsts.mean()) if len(firsts) else None,
+            "stages_once": {k: float(v.mean()) for k, v in self.stages_once.items()},
+            "mean_max_normalized_reward": float(self.max_reward.mean()) if self.max_reward is not None else None,
             "seconds": round(self.seconds, 3),
             **self.meta,
         }
 
     def to_json(self, path: str | Path) -> None:
         episodes = [
-            {"seed": s, "success_once": bool(a), "success_at_end": bool(b), "first_success_step": int(f)}
-            for s, a, b, f in zip(self.seeds, self.success_once, self.success_at_end, self.first_success)
+            {"seed": s, "success_once": bool(a), "success_at_end": bool(b), "first_success_step": int(f),
+             "stages_once": {k: bool(v[i]) for k, v in self.stages_once.items()},
+             "max_normalized_reward": float(self.max_reward[i]) if self.max_reward is not None else None}
+            for i, (s, a, b, f) in enumerate(zip(self.seeds, self.success_once, self.success_at_end,
+                                                  self.first_success))
         ]
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         Path(path).write_text(json.dumps({"summary": self.summary(), "episodes": episodes}, indent=1))
@@ -107,25 +119,49 @@ def _init_worker(env_id: str, control_mode: str, horizon: int, make_policy: Call
     from cotpc.envs.maniskill import make_env
 
     torch.set_num_threads(threads)
-    _STATE.update(env=make_env(env_id, control_mode, max_episode_steps=horizon), policy=make_policy(),
-                  horizon=horizon)
+    _STATE.update(env=make_env(env_id, control_mode, max_episode_steps=horizon, reward_mode=REWARD_MODE),
+                  policy=make_policy(), horizon=horizon)
 
 
-def _episode(seed: int) -> tuple[int, bool, bool, int]:
-    """One episode from ``seed`` in this process's env: (seed, success_once, success_at_end, first success step)."""
+def stage_flags(info: dict) -> dict[str, np.ndarray]:
+    """The task's boolean progress flags in ``info`` (not ``success`` itself), each as a (B,) bool array."""
+    flags = {}
+    for key, value in info.items():
+        if key in ("success", "fail", "elapsed_steps") or key.startswith("_"):
+            continue
+        value = _to_numpy(value)
+        if value.dtype == bool:
+            flags[key] = value.reshape(-1)
+    return flags
+
+
+def _episode(seed: int) -> tuple[int, bool, bool, int, dict[str, bool], float]:
+    """One episode from ``seed`` in this process's env: (seed, success_once, success_at_end, first success step,
+    stage flags ever true, highest normalised dense reward)."""
     from cotpc.envs.maniskill import flat_obs
 
     env, policy, horizon = _STATE["env"], _STATE["policy"], _STATE["horizon"]
     obs, _ = env.reset(seed=int(seed), options={"reconfigure": True})
     policy.reset()
-    first, success = -1, False
+    first, success, stages, best = -1, False, {}, -np.inf
     for t in range(horizon):
         action = np.asarray(policy.select_action(flat_obs(obs)), dtype=np.float32)[0]
-        obs, _, _, _, info = env.step(action)  # terminations ignored: always the full horizon
+        obs, reward, _, _, info = env.step(action)  # terminations ignored: always the full horizon
         success = bool(_to_numpy(info["success"]).reshape(-1)[0])
         if success and first < 0:
             first = t + 1
-    return int(seed), first > 0, success, first
+        for key, value in stage_flags(info).items():
+            stages[key] = stages.get(key, False) or bool(value[0])
+        best = max(best, float(_to_numpy(reward).reshape(-1)[0]))
+    return int(seed), first > 0, success, first, stages, best
+
+
+def _collect(results: list[tuple]) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray], np.ndarray]:
+    keys = sorted({k for r in results for k in r[4]})
+    return (np.array([r[1] for r in results], bool), np.array([r[2] for r in results], bool),
+            np.array([r[3] for r in results], int),
+            {k: np.array([r[4].get(k, False) for r in results], bool) for k in keys},
+            np.array([r[5] for r in results], float))
 
 
 def rollout_cpu(
@@ -136,9 +172,10 @@ def rollout_cpu(
     horizon: int,
     procs: int = 1,
     progress: bool = True,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray], np.ndarray]:
     """Episodes from ``seeds`` on the CPU simulator; ``make_policy`` (picklable, no arguments) builds the policy
-    in each process. Returns success_once, success_at_end and first-success steps, in the order of ``seeds``."""
+    in each process. Returns success_once, success_at_end, first-success steps, stage flags ever true and the
+    highest normalised reward of each episode, in the order of ``seeds``."""
     from tqdm import tqdm
 
     args = (env_id, control_mode, horizon, make_policy, 1)
@@ -150,8 +187,7 @@ def rollout_cpu(
     else:
         with mp.get_context("spawn").Pool(procs, initializer=_init_worker, initargs=args) as pool:
             results = list(bar(pool.imap(_episode, seeds)))
-    return (np.array([r[1] for r in results], bool), np.array([r[2] for r in results], bool),
-            np.array([r[3] for r in results], int))
+    return _collect(results)
 
 
 # ---------------------------------------------------------------- GPU: ManiSkill3's parallel simulation
@@ -165,7 +201,7 @@ def rollout_gpu(
     horizon: int,
     num_envs: int = 256,
     progress: bool = True,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray], np.ndarray]:
     """Episodes from ``seeds`` in ManiSkill3's GPU simulation, ``num_envs`` at a time (untested here: no GPU)."""
     import torch
     from tqdm import tqdm
@@ -173,8 +209,9 @@ def rollout_gpu(
     from cotpc.envs.maniskill import make_env
 
     n = min(num_envs, len(seeds))
-    env = make_env(env_id, control_mode, max_episode_steps=horizon, num_envs=n, sim_backend="physx_cuda")
-    once, end, first = [], [], []
+    env = make_env(env_id, control_mode, max_episode_steps=horizon, num_envs=n, sim_backend="physx_cuda",
+                   reward_mode=REWARD_MODE)
+    results = []
     try:
         for start in tqdm(range(0, len(seeds), n), desc=f"eval {env_id} (gpu)", disable=not progress):
             batch = [int(s) for s in seeds[start:start + n]]
@@ -183,16 +220,23 @@ def rollout_gpu(
             policy.reset()
             first_b = np.full(n, -1)
             success = np.zeros(n, bool)
+            stages: dict[str, np.ndarray] = {}
+            best = np.full(n, -np.inf)
             for t in range(horizon):
                 action = policy.select_action(_to_numpy(obs).astype(np.float32))
-                obs, _, _, _, info = env.step(torch.as_tensor(action, dtype=torch.float32, device=env.unwrapped.device))
+                obs, reward, _, _, info = env.step(torch.as_tensor(action, dtype=torch.float32,
+                                                                   device=env.unwrapped.device))
                 success = _to_numpy(info["success"]).reshape(-1).astype(bool)
                 first_b[(first_b < 0) & success] = t + 1
-            k = len(batch)
-            once.append(first_b[:k] > 0), end.append(success[:k]), first.append(first_b[:k])
+                for key, value in stage_flags(info).items():
+                    stages[key] = stages.get(key, np.zeros(n, bool)) | value
+                best = np.maximum(best, _to_numpy(reward).reshape(-1))
+            for i, seed in enumerate(batch):
+                results.append((seed, first_b[i] > 0, success[i], first_b[i], {k: v[i] for k, v in stages.items()},
+                                best[i]))
     finally:
         env.close()
-    return np.concatenate(once), np.concatenate(end), np.concatenate(first)
+    return _collect(results)
 
 
 # ---------------------------------------------------------------- entry point
@@ -222,14 +266,16 @@ def evaluate(
         backend = "gpu" if torch.cuda.is_available() else "cpu"
     start = time.perf_counter()
     if backend == "gpu":
-        once, end, first = rollout_gpu(make_policy(), env_id, control_mode, seeds, horizon, num_envs, progress)
+        once, end, first, stages, best = rollout_gpu(make_policy(), env_id, control_mode, seeds, horizon, num_envs,
+                                                     progress)
     elif backend == "cpu":
-        once, end, first = rollout_cpu(make_policy, env_id, control_mode, seeds, horizon, procs, progress)
+        once, end, first, stages, best = rollout_cpu(make_policy, env_id, control_mode, seeds, horizon, procs,
+                                                     progress)
     else:
         raise ValueError(f"backend must be 'auto', 'cpu' or 'gpu', got {backend!r}")
     return EvalResult(
         split=split, env_id=env_id, horizon=horizon, seeds=seeds, success_once=once, success_at_end=end,
-        first_success=first, seconds=time.perf_counter() - start,
+        first_success=first, seconds=time.perf_counter() - start, stages_once=stages, max_reward=best,
         meta={"control_mode": control_mode, "backend": backend, "procs": procs if backend == "cpu" else None},
     )
 

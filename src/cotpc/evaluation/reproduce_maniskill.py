@@ -77,6 +77,7 @@ def run(s: ManiSkillStudySettings) -> dict:
         results[env_id] = {}
         for name in s.policies:
             rates: dict = {(split, metric): [] for split in SPLITS for metric in ("success_once", "success_at_end")}
+            progress: dict = {split: [] for split in SPLITS}  # per seed: stage flag -> %, and the max reward
             for seed in range(s.seeds):
                 run_dir = task / "runs" / name / f"seed{seed}"
                 timings[f"{env_id}/{name}/seed{seed}"] = train_run(
@@ -92,6 +93,7 @@ def run(s: ManiSkillStudySettings) -> dict:
                         summary = r.summary()
                     for metric in ("success_once", "success_at_end"):
                         rates[(split, metric)].append(100 * summary[metric])
+                    progress[split].append(summary)
                 print(f"[4/4] {env_id}: {name} seed {seed}: "
                       + "  ".join(f"{split} {rates[(split, 'success_once')][-1]:.1f}% once / "
                                   f"{rates[(split, 'success_at_end')][-1]:.1f}% at end" for split in SPLITS), flush=True)
@@ -99,7 +101,11 @@ def run(s: ManiSkillStudySettings) -> dict:
             # success_at_end is ManiSkill3's stricter one.
             results[env_id][name] = {
                 split: {**_stats(rates[(split, "success_once")]),
-                        "success_at_end": _stats(rates[(split, "success_at_end")])}
+                        "success_at_end": _stats(rates[(split, "success_at_end")]),
+                        "stages_once": {k: 100 * float(np.mean([p["stages_once"][k] for p in progress[split]]))
+                                        for k in progress[split][0]["stages_once"]},
+                        "max_normalized_reward": float(np.mean([p["mean_max_normalized_reward"]
+                                                                for p in progress[split]]))}
                 for split in SPLITS
             }
     import torch
@@ -145,6 +151,8 @@ def _cached_eval(run_dir: Path, split: str, horizon: int, episodes: int | None) 
     except (ValueError, KeyError, TypeError):
         return None
     if summary.get("horizon") != horizon or (episodes is not None and summary.get("episodes") != episodes):
+        return None
+    if "stages_once" not in summary:  # written before progress was measured
         return None
     return summary
 
@@ -198,6 +206,20 @@ def write_report(results: dict, out: Path) -> Path:
                 f"{cell(r['unseen']['success_at_end'])} | {paper['results'].get(name, '–')} | "
                 f"{f'{t / 60:.1f}' if t else '–'} |"
             )
+        stages = sorted({k for r in by_policy.values() for k in r["unseen"]["stages_once"]})
+        lines += [
+            "",
+            "Progress on unseen seeds, short of success (mean over seeds): how often each stage flag of the task "
+            "was ever true (%), and the highest normalised dense reward reached (ManiSkill3's staged reward, "
+            "1 = success), averaged over episodes.",
+            "",
+            "| policy | " + " | ".join(stages) + " | max normalised reward |",
+            "|---|" + "---|" * (len(stages) + 1),
+        ]
+        for name, r in by_policy.items():
+            u = r["unseen"]
+            lines.append(f"| {name} | " + " | ".join(f"{u['stages_once'].get(k, float('nan')):.1f}" for k in stages)
+                         + f" | {u['max_normalized_reward']:.3f} |")
         figure = plot_learning_curves(out / env_id / "runs", list(by_policy), out / f"learning_curves_{env_id}.png")
         lines += ["", f"![learning curves {env_id}]({figure.name})"]
     path = out / "report.md"
