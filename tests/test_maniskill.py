@@ -210,3 +210,19 @@ def test_reproduce_maniskill_end_to_end_and_resumes(stack_demos, tmp_path):
     stamps = (weights.stat().st_mtime_ns, evals.stat().st_mtime_ns)
     assert run(settings)["StackCube-v1"]["cotpc"] == r
     assert (weights.stat().st_mtime_ns, evals.stat().st_mtime_ns) == stamps
+
+
+def test_maniskill_report_for_a_task_without_stage_flags(tmp_path):
+    from cotpc.evaluation.reproduce_maniskill import PAPER, write_report
+
+    stats = {"mean": 0.0, "std": 0.0, "best": 0.0, "runs": [0.0]}
+    split = {**stats, "success_at_end": stats, "stages_once": {}, "max_normalized_reward": 0.25}
+    meta = {"settings": {"iters": 2, "seeds": 1, "control_mode": "pd_joint_delta_pos", "extra_train_args": {}},
+            "checkpoint_selection": "final", "wall_seconds": 1.0, "demos": {"PegInsertionSide-v1": 3},
+            "horizons": {"PegInsertionSide-v1": 200}, "subskills": {}, "train_seconds": {}, "paper": PAPER,
+            "hardware": {"cpus": 2, "machine": "x86_64"},
+            "versions": {"torch": "t", "mani_skill": "m", "sapien": "s"}}
+    report = write_report({"PegInsertionSide-v1": {"bet": {"seen": split, "unseen": split}}, "meta": meta},
+                          tmp_path).read_text()
+    assert "| policy | max normalised reward |\n|---|---|\n| bet | 0.250 |" in report
+    assert "| bet | 0.0 ± 0.0 [0.0] |" in report and "| 42.5 |" in report

@@ -213,13 +213,14 @@ def write_report(results: dict, out: Path) -> Path:
             "was ever true (%), and the highest normalised dense reward reached (ManiSkill3's staged reward, "
             "1 = success), averaged over episodes.",
             "",
-            "| policy | " + " | ".join(stages) + " | max normalised reward |",
+            "| " + " | ".join(["policy", *stages, "max normalised reward"]) + " |",
             "|---|" + "---|" * (len(stages) + 1),
         ]
         for name, r in by_policy.items():
             u = r["unseen"]
-            lines.append(f"| {name} | " + " | ".join(f"{u['stages_once'].get(k, float('nan')):.1f}" for k in stages)
-                         + f" | {u['max_normalized_reward']:.3f} |")
+            cells = [name, *(f"{u['stages_once'].get(k, float('nan')):.1f}" for k in stages),
+                     f"{u['max_normalized_reward']:.3f}"]
+            lines.append("| " + " | ".join(cells) + " |")
         figure = plot_learning_curves(out / env_id / "runs", list(by_policy), out / f"learning_curves_{env_id}.png")
         lines += ["", f"![learning curves {env_id}]({figure.name})"]
     path = out / "report.md"
