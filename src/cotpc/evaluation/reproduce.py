@@ -296,7 +296,8 @@ def plot_learning_curves(runs: Path, names: list[str], path: Path) -> Path:
         ax.set_title(n, fontsize=9)
         ax.set_xlabel("iteration", fontsize=8)
         ax.tick_params(labelsize=7)
-        ax.legend(fontsize=7)
+        if ax.get_lines():  # a run without logs has nothing to label
+            ax.legend(fontsize=7)
     for ax in list(axes.flat)[len(names):]:
         ax.axis("off")
     fig.supylabel("action loss", fontsize=8)
