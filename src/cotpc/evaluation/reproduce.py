@@ -143,15 +143,23 @@ def _cpu_count() -> int:
 def _cached_eval(run_dir: Path, key: str, seeds: list[int], deadly: bool) -> dict | None:
     """The summary of ``eval_<key>.json`` if it was written after the current weights, for exactly these
     configuration seeds and gap rule; else None (evaluate again)."""
-    path, weights = run_dir / f"eval_{key}.json", run_dir / "model.safetensors"
+    saved = _fresh_eval(run_dir, f"eval_{key}.json")
+    try:
+        same = [e["seed"] for e in saved["episodes"]] == list(seeds) and saved["summary"]["deadly_gaps"] == deadly
+    except (KeyError, TypeError):
+        return None
+    return saved["summary"] if same else None
+
+
+def _fresh_eval(run_dir: Path, name: str) -> dict | None:
+    """``run_dir/name`` parsed, if it exists and was written after the run's current weights; else None."""
+    path, weights = run_dir / name, run_dir / "model.safetensors"
     if not path.exists() or path.stat().st_mtime_ns < weights.stat().st_mtime_ns:
         return None
     try:
-        saved = json.loads(path.read_text())
-        same = [e["seed"] for e in saved["episodes"]] == list(seeds) and saved["summary"]["deadly_gaps"] == deadly
-    except (ValueError, KeyError, TypeError):
+        return json.loads(path.read_text())
+    except ValueError:
         return None
-    return saved["summary"] if same else None
 
 
 def train_run(run_dir: Path, data: Path, policy: str, seed: int, iters: int, extra_train_args: dict,

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cotpc.evaluation.reproduce import _cpu_count, _stats, plot_learning_curves, train_run
+from cotpc.evaluation.reproduce import _cpu_count, _fresh_eval, _stats, plot_learning_curves, train_run
 
 # The paper's Table 2 (ManiSkill2, state observations, success %). Its Stack Cube number is on unseen configs;
 # its Peg Insertion number is "0-shot" (unseen peg/hole geometries). ManiSkill3's PegInsertionSide-v1 draws the
@@ -50,9 +50,9 @@ class ManiSkillStudySettings:
 
 def run(s: ManiSkillStudySettings) -> dict:
     from cotpc.cli.demos import ManiSkillDemos, run_maniskill
+    from cotpc.cli.segment import defaults_for
     from cotpc.envs.maniskill import HORIZONS, import_maniskill
     from cotpc.evaluation.maniskill import evaluate, policy_loader
-    from cotpc.subskills import PAPER_BETA
     from cotpc.subskills.labeling import label_file
 
     import_maniskill()
@@ -61,23 +61,23 @@ def run(s: ManiSkillStudySettings) -> dict:
         raise ValueError(f"not a supported ManiSkill3 task: {unknown}; supported: {sorted(HORIZONS)}")
     t_start = time.perf_counter()
     out = Path(s.out)
-    beta = PAPER_BETA if s.beta is None else s.beta
     results: dict = {}
     timings: dict = {}
     subskills: dict = {}
+    demo_counts = {env_id: s.num or PAPER_DEMOS.get(env_id, 500) for env_id in s.envs}
     for env_id in s.envs:
         task = out / env_id
         demos = task / "demos"
-        num = s.num or PAPER_DEMOS.get(env_id, 500)
+        num = demo_counts[env_id]
         print(f"[1/4] {env_id}: {num} train + {s.test} test planner demos -> {demos}", flush=True)
         run_maniskill(ManiSkillDemos(env=env_id, out=demos, num=num, test=s.test, control_mode=s.control_mode,
                                      procs=s.procs, progress=sys.stderr.isatty()))
-        print(f"[2/4] {env_id}: subskill discovery, mean-cosine cost, beta={beta}", flush=True)
-        subskills[env_id], _ = label_file(demos / "train.h5", beta=beta, min_size=1, cost="mean-cosine")
+        beta, cost = defaults_for(env_id, s.beta, None)  # the paper's single-arm setting
+        print(f"[2/4] {env_id}: subskill discovery, {cost} cost, beta={beta}", flush=True)
+        subskills[env_id], _ = label_file(demos / "train.h5", beta=beta, min_size=1, cost=cost)
         results[env_id] = {}
         for name in s.policies:
-            rates: dict = {(split, metric): [] for split in SPLITS for metric in ("success_once", "success_at_end")}
-            progress: dict = {split: [] for split in SPLITS}  # per seed: stage flag -> %, and the max reward
+            summaries: dict = {split: [] for split in SPLITS}  # one evaluation summary per seed
             for seed in range(s.seeds):
                 run_dir = task / "runs" / name / f"seed{seed}"
                 timings[f"{env_id}/{name}/seed{seed}"] = train_run(
@@ -91,29 +91,19 @@ def run(s: ManiSkillStudySettings) -> dict:
                         r.meta.update({"run": str(run_dir), "checkpoint": "last", "demos": str(demos)})
                         r.to_json(run_dir / f"eval_{split}.json")
                         summary = r.summary()
-                    for metric in ("success_once", "success_at_end"):
-                        rates[(split, metric)].append(100 * summary[metric])
-                    progress[split].append(summary)
-                print(f"[4/4] {env_id}: {name} seed {seed}: "
-                      + "  ".join(f"{split} {rates[(split, 'success_once')][-1]:.1f}% once / "
-                                  f"{rates[(split, 'success_at_end')][-1]:.1f}% at end" for split in SPLITS), flush=True)
+                    summaries[split].append(summary)
+                print(f"[4/4] {env_id}: {name} seed {seed}: " + "  ".join(
+                    f"{split} {100 * summaries[split][-1]['success_once']:.1f}% once / "
+                    f"{100 * summaries[split][-1]['success_at_end']:.1f}% at end" for split in SPLITS), flush=True)
             # "mean"/"std"/"best"/"runs" are success_once, the paper's metric (the maze results' shape);
             # success_at_end is ManiSkill3's stricter one.
-            results[env_id][name] = {
-                split: {**_stats(rates[(split, "success_once")]),
-                        "success_at_end": _stats(rates[(split, "success_at_end")]),
-                        "stages_once": {k: 100 * float(np.mean([p["stages_once"][k] for p in progress[split]]))
-                                        for k in progress[split][0]["stages_once"]},
-                        "max_normalized_reward": float(np.mean([p["mean_max_normalized_reward"]
-                                                                for p in progress[split]]))}
-                for split in SPLITS
-            }
+            results[env_id][name] = {split: _aggregate(summaries[split]) for split in SPLITS}
     import torch
 
     results["meta"] = {
         "command": " ".join(["cotpc"] + sys.argv[1:]) if sys.argv and "cotpc" in sys.argv[0] else None,
         "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(s).items()},
-        "demos": {e: s.num or PAPER_DEMOS.get(e, 500) for e in s.envs},
+        "demos": demo_counts,
         "horizons": {e: s.horizon or HORIZONS[e] for e in s.envs},
         "subskills": subskills,
         "versions": {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
@@ -131,6 +121,17 @@ def run(s: ManiSkillStudySettings) -> dict:
     return results
 
 
+def _aggregate(summaries: list[dict]) -> dict:
+    """Per-seed evaluation summaries -> success % over seeds, stage flags % and max reward (means over seeds)."""
+    return {
+        **_stats([100 * x["success_once"] for x in summaries]),
+        "success_at_end": _stats([100 * x["success_at_end"] for x in summaries]),
+        "stages_once": {k: 100 * float(np.mean([x["stages_once"][k] for x in summaries]))
+                        for k in summaries[0]["stages_once"]},
+        "max_normalized_reward": float(np.mean([x["mean_max_normalized_reward"] for x in summaries])),
+    }
+
+
 def _version(module: str) -> str | None:
     from importlib.metadata import PackageNotFoundError, version
 
@@ -143,12 +144,9 @@ def _version(module: str) -> str | None:
 def _cached_eval(run_dir: Path, split: str, horizon: int, episodes: int | None) -> dict | None:
     """The summary of ``eval_<split>.json`` if it was written after the current weights with this horizon and
     number of episodes (the seeds of a split are fixed by its demo file); else None (evaluate again)."""
-    path, weights = run_dir / f"eval_{split}.json", run_dir / "model.safetensors"
-    if not path.exists() or path.stat().st_mtime_ns < weights.stat().st_mtime_ns:
-        return None
-    try:
-        summary = json.loads(path.read_text())["summary"]
-    except (ValueError, KeyError, TypeError):
+    saved = _fresh_eval(run_dir, f"eval_{split}.json")
+    summary = saved.get("summary") if isinstance(saved, dict) else None
+    if not isinstance(summary, dict):
         return None
     if summary.get("horizon") != horizon or (episodes is not None and summary.get("episodes") != episodes):
         return None
