@@ -42,3 +42,36 @@ def test_reproduce_runs_end_to_end_and_resumes(tmp_path, capsys):
     assert (run / "eval_val.json").stat().st_mtime_ns == evaluated
     assert (run / "eval_unseen.json").exists()
     assert json.loads((out / "results.json").read_text())["cotpc"] == results["cotpc"]
+
+
+def test_reproduce_parallel_jobs_and_checkpoint_curve(tmp_path):
+    """--jobs trains runs in parallel processes, giving the same weights as one by one (one thread each);
+    --keep-checkpoints adds validation success at every kept checkpoint to results.json and a plot."""
+    from safetensors.torch import load_file
+
+    common = ["--iters", "10", "--batch-size", "8", "--train-demos", "12", "--test-demos", "2", "--val-demos", "3",
+              "--policies", "bc", "cotpc", "--ablations", "--seeds", "1", "--n-centres", "8"]
+    parallel, serial = tmp_path / "parallel", tmp_path / "serial"
+    cotpc_main(["reproduce", "maze", "--out", str(parallel), "--jobs", "2", "--keep-checkpoints", *common])
+    # the serial run: same thread count as each parallel process got (cores // jobs, at least 1)
+    import os
+
+    threads = max(1, len(os.sched_getaffinity(0)) // 2)
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        cotpc_main(["reproduce", "maze", "--out", str(serial), *common])
+    finally:
+        torch.set_num_threads(before)
+    for name in ("bc", "cotpc"):
+        a = load_file(parallel / "runs" / name / "seed0" / "model.safetensors")
+        b = load_file(serial / "runs" / name / "seed0" / "model.safetensors")
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), name
+    results = json.loads((parallel / "results.json").read_text())
+    curve = results["meta"]["val_success_by_iteration"]["cotpc/seed0"]
+    assert curve["iteration"] == list(range(1, 11))  # a checkpoint every tenth of the run
+    assert len(curve["val"]) == len(curve["val_deadly_gaps"]) == 10
+    assert all(0 <= v <= 100 and abs(v * 3 / 100 - round(v * 3 / 100)) < 1e-9 for v in curve["val"])
+    assert (parallel / "val_success.png").exists() and "val_success.png" in (parallel / "report.md").read_text()

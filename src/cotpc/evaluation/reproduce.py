@@ -50,6 +50,7 @@ class ReproduceSettings:
     val_demos: int = 100
     demo_seed: int = 0
     workers: int = 2
+    jobs: int = 1
     extra_train_args: dict = field(default_factory=dict)
 
 
@@ -83,19 +84,26 @@ def run(s: ReproduceSettings) -> dict:
     results: dict = {}
     timings: dict = {}
     names = list(s.policies) + [a for a in s.ablations if a not in s.policies]
+    runs = [(name, seed) for name in names for seed in (range(s.seeds) if name in s.policies else range(1))]
+    if s.jobs > 1:  # ablations: one seed each
+        train_parallel(out, demos / "train.h5", runs, s.iters, s.extra_train_args, s.jobs)
+    eval_device = _resolve_device(s.extra_train_args.get("device", "auto"))
+    curves: dict = {}
     for name in names:
-        seeds = range(s.seeds) if name in s.policies else range(1)  # ablations: one seed each
+        seeds = [seed for n, seed in runs if n == name]
         per_split: dict = {key: [] for key in EVAL_KEYS}
         transitions: dict = {key: [] for key in EVAL_KEYS}
         for seed in seeds:
             run_dir = out / "runs" / name / f"seed{seed}"
             timings[f"{name}/seed{seed}"] = train_run(run_dir, demos / "train.h5", name, seed, s.iters,
                                                        s.extra_train_args, step="[3/5]")
+            if s.extra_train_args.get("keep_checkpoints"):
+                curves[f"{name}/seed{seed}"] = checkpoint_curve(run_dir, demos, eval_device)
             policy = None
             for key, (split, deadly) in EVAL_KEYS.items():
                 summary = _cached_eval(run_dir, key, split_seeds[split], deadly)
                 if summary is None:
-                    policy = policy or load_policy(run_dir)
+                    policy = policy or load_policy(run_dir, device=eval_device)
                     video = out / "videos" / name if (key == "unseen" and seed == 0) else None
                     r = evaluate(policy, demos, split, video_dir=video, num_videos=2, deadly_gaps=deadly)
                     r.to_json(run_dir / f"eval_{key}.json")
@@ -128,10 +136,65 @@ def run(s: ReproduceSettings) -> dict:
         "success_unit": "percent of episodes",
         "checkpoint_selection": "final weights of a fixed schedule (no selection on evaluation success)",
     }
+    if curves:
+        results["meta"]["val_success_by_iteration"] = curves
     (out / "results.json").write_text(json.dumps(results, indent=1))
     print("[5/5] report", flush=True)
     write_report(results, out)
     return results
+
+
+def _resolve_device(device: str) -> str:
+    import torch
+
+    return ("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device
+
+
+def _train_worker(args: tuple) -> tuple[str, int, float | None]:
+    run_dir, data, name, seed, iters, extra = args
+    return name, seed, train_run(run_dir, data, name, seed, iters, extra, step="[3/5]")
+
+
+def train_parallel(out: Path, data: Path, runs: list[tuple[str, int]], iters: int, extra_train_args: dict,
+                   jobs: int) -> None:
+    """Train the unfinished ``runs`` in ``jobs`` processes at once. One small model leaves a GPU (or a many-core
+    CPU) mostly idle, so independent runs in parallel finish the study several times sooner. Each process gets
+    cores / jobs threads; the runs are the same as trained one by one with that thread count."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    todo = [(name, seed) for name, seed in runs if not _finished(out / "runs" / name / f"seed{seed}", iters)]
+    if not todo:
+        return
+    extra = {**extra_train_args, "threads": extra_train_args.get("threads") or max(1, _cpu_count() // jobs)}
+    print(f"[3/5] training {len(todo)} runs, {jobs} at a time", flush=True)
+    # spawn: a forked child must not inherit CUDA or OpenMP state
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
+        args = [(out / "runs" / name / f"seed{seed}", data, name, seed, iters, extra) for name, seed in todo]
+        for name, seed, seconds in pool.map(_train_worker, args):
+            print(f"[3/5] done: {name} seed {seed} ({seconds} s)", flush=True)
+
+
+def checkpoint_curve(run_dir: Path, demos: Path, device: str) -> dict:
+    """Success on the validation configs (both gap rules) of every checkpoint kept under ``run_dir/checkpoints``:
+    how success moves with training length, measured without the test configs. Cached like the final evaluations."""
+    from cotpc import load_policy
+    from cotpc.evaluation.maze import evaluate, load_split_configs
+
+    seeds = load_split_configs(demos, "val")[1]
+    curve: dict = {"iteration": [], "val": [], "val_deadly_gaps": []}
+    for ckpt in sorted((run_dir / "checkpoints").glob("step_*")):
+        curve["iteration"].append(int(ckpt.name.split("_")[1]))
+        policy = None
+        for key, deadly in (("val", False), ("val_deadly_gaps", True)):
+            summary = _cached_eval(ckpt, key, seeds, deadly)
+            if summary is None:
+                policy = policy or load_policy(ckpt, device=device)
+                r = evaluate(policy, demos, "val", deadly_gaps=deadly)
+                r.to_json(ckpt / f"eval_{key}.json")
+                summary = r.summary()
+            curve[key].append(100 * summary["success_rate"])
+    return curve
 
 
 def _cpu_count() -> int:
@@ -281,7 +344,35 @@ def _plots(results: dict, out: Path, names: list[str]) -> list[Path]:
     fig.savefig(paths[-1], dpi=110)
     plt.close(fig)
     paths.append(plot_learning_curves(out / "runs", names, out / "learning_curves.png"))
+    curves = results["meta"].get("val_success_by_iteration")
+    if curves:
+        paths.append(plot_val_success(curves, names, out / "val_success.png"))
     return paths
+
+
+def plot_val_success(curves: dict, names: list[str], path: Path) -> Path:
+    """Validation success against training iterations, one panel per gap rule, one line per run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), sharey=True)
+    colours = {n: f"C{i % 10}" for i, n in enumerate(names)}
+    for ax, key in zip(axes, ("val", "val_deadly_gaps")):
+        for run, c in curves.items():
+            name, seed = run.rsplit("/seed", 1)
+            if name in colours and c["iteration"]:
+                ax.plot(c["iteration"], c[key], color=colours[name], alpha=0.9 if seed == "0" else 0.45,
+                        label=name if seed == "0" else None, marker=".")
+        ax.set_title(key.replace("_", " "), fontsize=9)
+        ax.set_xlabel("iteration")
+    axes[0].set_ylabel("validation success (%)")
+    axes[1].legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def plot_learning_curves(runs: Path, names: list[str], path: Path) -> Path:

@@ -1,0 +1,5 @@
+"""``python -m cotpc VERB ...``: the same as the ``cotpc`` console script."""
+
+from cotpc.cli.main import main
+
+main()
