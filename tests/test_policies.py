@@ -158,3 +158,22 @@ def test_inference_computes_only_the_tokens_it_reads_with_the_same_result(name, 
         full = {k: v[3:] for k, v in batch.items()}
         full.pop("valid")
         torch.testing.assert_close(model.predict(full), _predict_from_all_tokens(model, full))
+
+
+@pytest.mark.parametrize("name", [n for n in PRESETS if n != "bc"])
+def test_context_one_trains_and_acts(name, trajs):
+    """Context 1 (no history: only the current state, plus the CoT tokens) is a valid setting for every
+    transformer preset: a training step and control work."""
+    cfg = get_preset(name, **{**TINY, "context": 1})
+    obs = np.concatenate([e.obs[:-1] for e in trajs.episodes])
+    act = np.concatenate([e.actions for e in trajs.episodes])
+    ds = WindowDataset(trajs, list(range(len(trajs))), cfg.window, Stats.of(obs, act), cfg.cot_targets, seed=0)
+    torch.manual_seed(0)
+    model = make_model(cfg, Q, P, max_timestep=25)
+    loss, _ = model(ds.sample(8, torch.Generator().manual_seed(0)))
+    assert torch.isfinite(loss)
+    loss.backward()
+    policy = Policy(model.eval())
+    for _ in range(3):
+        a = policy.select_action(np.zeros((2, Q), np.float32) + 0.1)
+        assert a.shape == (2, P) and np.isfinite(a).all()

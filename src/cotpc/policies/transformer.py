@@ -152,7 +152,7 @@ class GPT(nn.Module):
             parts.append(self.cot_tokens.expand(B, -1, -1))
         if lay.use_actions:
             a = self.action_enc(actions) + pos[:, :-1]
-            sa = torch.stack([s[:, :-1], a], dim=2).reshape(B, 2 * (T - 1), -1)  # s0 a0 s1 a1 ...
+            sa = torch.stack([s[:, :-1], a], dim=2).reshape(B, 2 * (T - 1), s.shape[-1])  # s0 a0 s1 a1 ... (none if T=1)
             parts += [sa, s[:, -1:]]
         else:
             parts.append(s)
