@@ -75,3 +75,11 @@ def test_reproduce_parallel_jobs_and_checkpoint_curve(tmp_path):
     assert len(curve["val"]) == len(curve["val_deadly_gaps"]) == 10
     assert all(0 <= v <= 100 and abs(v * 3 / 100 - round(v * 3 / 100)) < 1e-9 for v in curve["val"])
     assert (parallel / "val_success.png").exists() and "val_success.png" in (parallel / "report.md").read_text()
+
+    # A finished run trained with other settings is an error, never reused as if it were the one asked for.
+    import pytest
+
+    other = list(common)
+    other[other.index("--n-centres") + 1] = "16"
+    with pytest.raises(ValueError, match="other settings"):
+        cotpc_main(["reproduce", "maze", "--out", str(serial), *other])

@@ -163,7 +163,8 @@ def train_parallel(out: Path, data: Path, runs: list[tuple[str, int]], iters: in
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    todo = [(name, seed) for name, seed in runs if not _finished(out / "runs" / name / f"seed{seed}", iters)]
+    todo = [(name, seed) for name, seed in runs
+            if not _finished(out / "runs" / name / f"seed{seed}", iters, {"policy": name, "seed": seed, **extra_train_args})]
     if not todo:
         return
     extra = {**extra_train_args, "threads": extra_train_args.get("threads") or max(1, _cpu_count() // jobs)}
@@ -232,7 +233,7 @@ def train_run(run_dir: Path, data: Path, policy: str, seed: int, iters: int, ext
     from cotpc.training.train import TrainConfig, train
 
     t0 = time.perf_counter()
-    if not _finished(run_dir, iters):
+    if not _finished(run_dir, iters, {"policy": policy, "seed": seed, **extra_train_args}):
         print(f"{step} train {policy} seed {seed} ({iters} iters) -> {run_dir}".strip(), flush=True)
         cfg = TrainConfig(
             data=data,
@@ -252,12 +253,32 @@ def train_run(run_dir: Path, data: Path, policy: str, seed: int, iters: int, ext
     return json.loads(timing.read_text())["train_seconds"] if timing.exists() else None
 
 
-def _finished(run_dir: Path, iters: int) -> bool:
+# Train settings that do not change what a run learns (where it ran, how it reports): ignored when a run on disk
+# is compared with the one a study asks for.
+_RUN_ONLY = {"data", "out", "resume", "device", "threads", "progress", "keep_checkpoints", "val_every", "ckpt_every",
+             "log_every", "stop_after", "bf16"}
+
+
+def _finished(run_dir: Path, iters: int, wanted: dict | None = None) -> bool:
+    """Whether ``run_dir`` holds a finished run of ``iters`` iterations. A run on disk trained with other settings
+    than ``wanted`` (TrainConfig fields) is an error, not something to reuse or resume silently."""
     cfg = run_dir / "config.json"
     if not cfg.exists():
         return False
     info = json.loads(cfg.read_text())
-    return info.get("step") == iters and info.get("train", {}).get("iters") == iters
+    saved = info.get("train", {})
+    wanted = {"iters": iters, **(wanted or {})}
+    ignore = set(_RUN_ONLY)
+    if "policy" in wanted:
+        from cotpc.policies.config import get_preset
+
+        if get_preset(wanted["policy"]).action_head != "bet":
+            ignore.add("n_centres")  # no k-means head: K changes nothing (BC/DT runs serve studies with any K)
+    diff = {k: (saved.get(k), v) for k, v in wanted.items() if k not in ignore and saved.get(k) != v}
+    if diff:
+        raise ValueError(f"{run_dir} holds a run trained with other settings (saved, asked for): {diff}. "
+                         "Use another --out, or delete that run to train it again.")
+    return info.get("step") == iters
 
 
 def write_report(results: dict, out: Path) -> Path:
