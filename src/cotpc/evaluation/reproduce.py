@@ -84,8 +84,9 @@ def run(s: ReproduceSettings) -> dict:
     results: dict = {}
     timings: dict = {}
     names = list(s.policies) + [a for a in s.ablations if a not in s.policies]
+    # ablations: one seed each
     runs = [(name, seed) for name in names for seed in (range(s.seeds) if name in s.policies else range(1))]
-    if s.jobs > 1:  # ablations: one seed each
+    if s.jobs > 1:
         train_parallel(out, demos / "train.h5", runs, s.iters, s.extra_train_args, s.jobs)
     eval_device = _resolve_device(s.extra_train_args.get("device", "auto"))
     curves: dict = {}
