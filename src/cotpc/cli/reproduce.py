@@ -125,7 +125,7 @@ def main(argv: list[str], prog: str) -> None:
         jobs=cfg.jobs,
         extra_train_args={"device": cfg.device, "batch_size": cfg.batch_size or quick.get("batch_size"),
                           "n_centres": cfg.n_centres or quick.get("n_centres"),
-                          **({"keep_checkpoints": True} if cfg.keep_checkpoints else {})},
+                          "keep_checkpoints": cfg.keep_checkpoints},
     )
     results = run(settings)
     print()

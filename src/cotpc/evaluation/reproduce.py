@@ -60,9 +60,9 @@ def _stats(rates: list[float]) -> dict:
 
 
 def run(s: ReproduceSettings) -> dict:
-    from cotpc import load_policy
     from cotpc.cli.demos import MazeDemos, run_maze
-    from cotpc.evaluation.maze import evaluate, load_split_configs
+    from cotpc.evaluation.maze import load_split_configs
+    from cotpc.training.train import resolve_device
     from cotpc.subskills.labeling import label_file
 
     t_start = time.perf_counter()
@@ -88,7 +88,7 @@ def run(s: ReproduceSettings) -> dict:
     runs = [(name, seed) for name in names for seed in (range(s.seeds) if name in s.policies else range(1))]
     if s.jobs > 1:
         train_parallel(out, demos / "train.h5", runs, s.iters, s.extra_train_args, s.jobs)
-    eval_device = _resolve_device(s.extra_train_args.get("device", "auto"))
+    eval_device = resolve_device(s.extra_train_args.get("device", "auto"))
     curves: dict = {}
     for name in names:
         seeds = [seed for n, seed in runs if n == name]
@@ -99,16 +99,11 @@ def run(s: ReproduceSettings) -> dict:
             timings[f"{name}/seed{seed}"] = train_run(run_dir, demos / "train.h5", name, seed, s.iters,
                                                        s.extra_train_args, step="[3/5]")
             if s.extra_train_args.get("keep_checkpoints"):
-                curves[f"{name}/seed{seed}"] = checkpoint_curve(run_dir, demos, eval_device)
-            policy = None
+                curves[f"{name}/seed{seed}"] = checkpoint_curve(run_dir, demos, split_seeds["val"], eval_device)
+            load = _policy_loader(run_dir, eval_device)
             for key, (split, deadly) in EVAL_KEYS.items():
-                summary = _cached_eval(run_dir, key, split_seeds[split], deadly)
-                if summary is None:
-                    policy = policy or load_policy(run_dir, device=eval_device)
-                    video = out / "videos" / name if (key == "unseen" and seed == 0) else None
-                    r = evaluate(policy, demos, split, video_dir=video, num_videos=2, deadly_gaps=deadly)
-                    r.to_json(run_dir / f"eval_{key}.json")
-                    summary = r.summary()
+                video = out / "videos" / name if (key == "unseen" and seed == 0) else None
+                summary = _evaluate_cached(run_dir, key, demos, split, split_seeds[split], deadly, load, video)
                 per_split[key].append(100 * summary["success_rate"])
                 transitions[key].append(summary["mean_region_transitions"])
             print(
@@ -145,12 +140,6 @@ def run(s: ReproduceSettings) -> dict:
     return results
 
 
-def _resolve_device(device: str) -> str:
-    import torch
-
-    return ("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device
-
-
 def _train_worker(args: tuple) -> tuple[str, int, float | None]:
     run_dir, data, name, seed, iters, extra = args
     return name, seed, train_run(run_dir, data, name, seed, iters, extra, step="[3/5]")
@@ -164,8 +153,8 @@ def train_parallel(out: Path, data: Path, runs: list[tuple[str, int]], iters: in
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    todo = [(name, seed) for name, seed in runs
-            if not _finished(out / "runs" / name / f"seed{seed}", iters, {"policy": name, "seed": seed, **extra_train_args})]
+    todo = [(name, seed) for name, seed in runs if not _finished(
+        out / "runs" / name / f"seed{seed}", iters, {"policy": name, "seed": seed, **extra_train_args})]
     if not todo:
         return
     extra = {**extra_train_args, "threads": extra_train_args.get("threads") or max(1, _cpu_count() // jobs)}
@@ -177,26 +166,40 @@ def train_parallel(out: Path, data: Path, runs: list[tuple[str, int]], iters: in
             print(f"[3/5] done: {name} seed {seed} ({seconds} s)", flush=True)
 
 
-def checkpoint_curve(run_dir: Path, demos: Path, device: str) -> dict:
+def checkpoint_curve(run_dir: Path, demos: Path, val_seeds: list[int], device: str) -> dict:
     """Success on the validation configs (both gap rules) of every checkpoint kept under ``run_dir/checkpoints``:
     how success moves with training length, measured without the test configs. Cached like the final evaluations."""
-    from cotpc import load_policy
-    from cotpc.evaluation.maze import evaluate, load_split_configs
-
-    seeds = load_split_configs(demos, "val")[1]
     curve: dict = {"iteration": [], "val": [], "val_deadly_gaps": []}
     for ckpt in sorted((run_dir / "checkpoints").glob("step_*")):
         curve["iteration"].append(int(ckpt.name.split("_")[1]))
-        policy = None
+        load = _policy_loader(ckpt, device)
         for key, deadly in (("val", False), ("val_deadly_gaps", True)):
-            summary = _cached_eval(ckpt, key, seeds, deadly)
-            if summary is None:
-                policy = policy or load_policy(ckpt, device=device)
-                r = evaluate(policy, demos, "val", deadly_gaps=deadly)
-                r.to_json(ckpt / f"eval_{key}.json")
-                summary = r.summary()
+            summary = _evaluate_cached(ckpt, key, demos, "val", val_seeds, deadly, load)
             curve[key].append(100 * summary["success_rate"])
     return curve
+
+
+def _policy_loader(run_dir: Path, device: str):
+    """A function that loads the run's policy on its first call only (no load when every evaluation is cached)."""
+    import functools
+
+    from cotpc import load_policy
+
+    return functools.cache(lambda: load_policy(run_dir, device=device))
+
+
+def _evaluate_cached(run_dir: Path, key: str, demos: Path, split: str, seeds: list[int], deadly: bool, load,
+                     video_dir: Path | None = None) -> dict:
+    """The summary of ``run_dir/eval_<key>.json``: reused when it is fresh for these weights, configs and gap rule,
+    else evaluated (with ``load()``'s policy) and written."""
+    from cotpc.evaluation.maze import evaluate
+
+    summary = _cached_eval(run_dir, key, seeds, deadly)
+    if summary is None:
+        r = evaluate(load(), demos, split, video_dir=video_dir, num_videos=2, deadly_gaps=deadly)
+        r.to_json(run_dir / f"eval_{key}.json")
+        summary = r.summary()
+    return summary
 
 
 def _cpu_count() -> int:

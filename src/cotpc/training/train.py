@@ -101,6 +101,11 @@ class TrainConfig:
     """Stop after this iteration as if killed (testing --resume); the schedule still follows --iters."""
 
 
+def resolve_device(device: str) -> str:
+    """``auto`` -> cuda when available, else cpu; anything else unchanged."""
+    return ("cuda" if torch.cuda.is_available() else "cpu") if device == "auto" else device
+
+
 def _param_groups(model: nn.Module, weight_decay: float) -> list[dict]:
     """Decay only Linear weights; biases, LayerNorms, embeddings and prompt tokens are not decayed."""
     decay, no_decay = [], []
@@ -201,9 +206,7 @@ def train(config: TrainConfig) -> Path:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-    device = config.device
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
+    device = resolve_device(config.device)
     if device == "cuda":
         device = f"cuda:{local_rank}"
         torch.cuda.set_device(device)
