@@ -98,6 +98,13 @@ def test_demos_also_succeed_when_gaps_are_deadly(demo_dir):
     assert result.meta["fell"] > 0
 
 
+def test_demos_also_succeed_under_the_papers_action_range(demo_dir):
+    # The demonstrator's action components already have magnitudes in [1.5, 4]: the rule changes none of them.
+    data = load_trajectories(demo_dir / "train.h5")
+    result = evaluate(ReplayPolicy([ep.actions for ep in data.episodes]), demo_dir, "seen", min_action=1.5)
+    assert result.success_rate == 1.0 and result.meta["min_action"] == 1.5
+
+
 def test_eval_cli_on_a_trained_run(demo_dir, tmp_path, capsys):
     run = tmp_path / "bc"
     cotpc_main(["train", "--data", str(demo_dir / "train.h5"), "--policy", "bc", "--out", str(run),
@@ -111,6 +118,8 @@ def test_eval_cli_on_a_trained_run(demo_dir, tmp_path, capsys):
     assert "success" in capsys.readouterr().out
     cotpc_main(["eval", str(run), "--split", "seen", "--deadly-gaps", "--episodes", "2"])
     assert json.loads((run / "eval_seen_deadly_gaps.json").read_text())["summary"]["deadly_gaps"] is True
+    cotpc_main(["eval", str(run), "--split", "seen", "--min-action", "1.5", "--episodes", "2"])
+    assert json.loads((run / "eval_seen_min_action1.5.json").read_text())["summary"]["min_action"] == 1.5
     cotpc_main(["eval", str(run), "--split", "val"])
     saved = json.loads((run / "eval_val.json").read_text())
     assert saved["summary"]["episodes"] == 5 and all(1_000_000 <= e["seed"] < 2_000_000 for e in saved["episodes"])

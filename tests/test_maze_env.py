@@ -244,6 +244,26 @@ def test_deadly_gaps_in_the_gym_env():
     assert terminated and not truncated and reward == 0.0 and info["fell"] and not info["success"]
 
 
+def test_min_action_rule_raises_small_components_keeping_their_sign():
+    # On the top island, far from every edge: a small move becomes a move of at least 1.5 per component.
+    actions = np.array([[0.1, -0.2], [0.0, 0.0], [-3.0, 2.5], [-9.0, 0.5]])
+    env = MovingMazeBatch([make_config(agent_start=(30.0, 70.0))] * 4, min_action=1.5)
+    obs, _, _ = env.step(actions)
+    np.testing.assert_allclose(obs[:, :2] - [30.0, 70.0], [[1.5, -1.5], [1.5, 1.5], [-3.0, 2.5], [-4.0, 1.5]])
+    # The default rule moves by the (clipped) action itself: the agent can creep or stand still.
+    env = MovingMazeBatch([make_config(agent_start=(30.0, 70.0))] * 4)
+    obs, _, _ = env.step(actions)
+    np.testing.assert_allclose(obs[:, :2] - [30.0, 70.0], [[0.1, -0.2], [0.0, 0.0], [-3.0, 2.5], [-4.0, 0.5]], atol=1e-5)
+    for bad in (-1.0, 4.5):
+        with pytest.raises(ValueError, match="min_action"):
+            MovingMazeBatch([make_config()], min_action=bad)
+    env = gym.make(MAZE_ENV_ID, min_action=1.5)
+    env.reset(seed=0, options={"config": make_config().to_dict()})
+    env.unwrapped._batch.agent[0] = (30.0, 70.0)
+    obs, *_ = env.step(np.array([0.0, -0.5]))
+    np.testing.assert_allclose(obs[:2], [31.5, 68.5])
+
+
 def test_landing_rule_moved_checks_where_the_blocks_will_be():
     # Bridge 1 spans x in [5, 15] at x=10 and moves right by 2 per step. A step down to x=6 lands on it as
     # observed, but after the bridge has moved (x in [7, 17]) that point is in the gap.

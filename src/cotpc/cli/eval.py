@@ -32,8 +32,12 @@ class EvalConfig:
     """How many rollouts to record with --video."""
     deadly_gaps: bool = False
     """Gap rule: a step into a gap ends the episode as a failure (default: the step is blocked)."""
+    min_action: float = 0.0
+    """Action rule: raise each action component's magnitude to at least this, sign kept. 1.5 is the paper's
+    literal action range, "both components in [1.5, 4]": the agent cannot stand still or creep (default: 0, any
+    action up to 4 per component; docs/moving-maze.md)."""
     out: Optional[Path] = None
-    """Per-episode results as JSON (default: RUN/eval_<split>.json)."""
+    """Per-episode results as JSON (default: RUN/eval_<split>[_deadly_gaps][_min_action<x>].json)."""
     device: str = "cpu"
     """Device for the policy."""
     horizon: Optional[int] = None
@@ -60,7 +64,7 @@ def _demos_and_weights(cfg: EvalConfig, info: dict) -> tuple[Path, Path]:
 
 def run_eval(cfg: EvalConfig) -> dict:
     from cotpc import load_policy
-    from cotpc.evaluation.maze import evaluate
+    from cotpc.evaluation.maze import eval_name, evaluate
     from cotpc.policies.policy import read_config
 
     info = read_config(cfg.run)
@@ -73,13 +77,15 @@ def run_eval(cfg: EvalConfig) -> dict:
         raise SystemExit(f"cotpc eval: {cfg.run} was trained on {env_id}; supported: Moving Maze and ManiSkill3 tasks")
     demos, weights = _demos_and_weights(cfg, info)
     policy = load_policy(weights, device=cfg.device)
-    result = evaluate(policy, demos, cfg.split, cfg.episodes, cfg.video, cfg.num_videos, cfg.deadly_gaps)
+    result = evaluate(policy, demos, cfg.split, cfg.episodes, cfg.video, cfg.num_videos, cfg.deadly_gaps,
+                      cfg.min_action)
     result.meta.update({"run": str(cfg.run), "checkpoint": cfg.checkpoint, "demos": str(demos)})
-    out = cfg.out or cfg.run / f"eval_{cfg.split}{'_deadly_gaps' if cfg.deadly_gaps else ''}.json"
+    out = cfg.out or cfg.run / f"eval_{eval_name(cfg.split, cfg.deadly_gaps, cfg.min_action)}.json"
     result.to_json(out)
     s = result.summary()
+    rules = ("deadly gaps" if cfg.deadly_gaps else "", f"min action {cfg.min_action:g}" if cfg.min_action else "")
     print(
-        f"{cfg.run} [{cfg.split}{', deadly gaps' if cfg.deadly_gaps else ''}] success {100 * s['success_rate']:.1f}% "
+        f"{cfg.run} [{', '.join([cfg.split, *filter(None, rules)])}] success {100 * s['success_rate']:.1f}% "
         f"(95% CI {100 * s['ci95'][0]:.1f}-{100 * s['ci95'][1]:.1f}, n={s['episodes']}), "
         f"region transitions {s['mean_region_transitions']:.2f}/5, {s['seconds']:.2f} s -> {out}"
     )
@@ -92,6 +98,9 @@ def run_eval_maniskill(cfg: EvalConfig, info: dict, env_id: str) -> dict:
     from cotpc.envs.maniskill import import_maniskill
     from cotpc.evaluation.maniskill import evaluate, policy_loader
 
+    if cfg.deadly_gaps or cfg.min_action:
+        raise SystemExit("cotpc eval: --deadly-gaps and --min-action are Moving Maze rules; "
+                         f"{cfg.run} was trained on {env_id}")
     import_maniskill()
     if cfg.video:
         raise SystemExit("cotpc eval: --video needs a render device for ManiSkill3 tasks; not supported yet")

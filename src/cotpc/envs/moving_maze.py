@@ -27,6 +27,7 @@ import numpy as np
 
 WIDTH, HEIGHT = 60.0, 80.0
 MAX_ACTION = 4.0  # each action component is clipped to [-4, 4]
+PAPER_MIN_ACTION = 1.5  # the paper: "both components in [1.5, 4]" (the min_action option; off by default)
 HORIZON = 60  # evaluation horizon (paper: "maximum number of steps as 60")
 BLOCK = 10.0  # squares and bridges are 10 x 10
 SPEED_RANGE = (1.0, 2.0)
@@ -238,19 +239,28 @@ class MovingMazeBatch:
     block positions the agent observed, then the blocks move; ``"moved"`` moves the blocks first, so a move must
     land where a block *will* be, which a policy can only judge from the blocks' motion over several
     observations. The demonstrator plans for either (see docs/moving-maze.md).
+
+    ``min_action`` > 0 reads the paper's action range ("both components in [1.5, 4]") as a rule of the
+    environment: each component's magnitude is raised to at least ``min_action`` (sign kept, 0 counts as
+    positive), so the agent can never stand still or creep. Default 0: any action up to 4 per component. The
+    demonstrator's actions are already in that range, so the demos are valid under both.
     """
 
     def __init__(
-        self, configs: list[MazeConfig], horizon: int = HORIZON, deadly_gaps: bool = False, landing: str = "observed"
+        self, configs: list[MazeConfig], horizon: int = HORIZON, deadly_gaps: bool = False, landing: str = "observed",
+        min_action: float = 0.0,
     ):
         if not configs:
             raise ValueError("MovingMazeBatch needs at least one config")
         if landing not in LANDING_RULES:
             raise ValueError(f"landing must be one of {LANDING_RULES}, got {landing!r}")
+        if not 0.0 <= min_action <= MAX_ACTION:
+            raise ValueError(f"min_action must be in [0, {MAX_ACTION}], got {min_action}")
         self.configs = list(configs)
         self.horizon = horizon
         self.deadly_gaps = deadly_gaps
         self.landing = landing
+        self.min_action = float(min_action)
         self.reset()
 
     @property
@@ -298,7 +308,10 @@ class MovingMazeBatch:
 
     def step(self, actions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Apply (B, 2) displacements. Returns (obs, success, done); done = success, fallen or horizon reached."""
-        actions = np.clip(check_actions(actions, self.num_envs), -MAX_ACTION, MAX_ACTION)
+        actions = check_actions(actions, self.num_envs)
+        if self.min_action > 0:
+            actions = np.where(actions >= 0, 1.0, -1.0) * np.maximum(np.abs(actions), self.min_action)
+        actions = np.clip(actions, -MAX_ACTION, MAX_ACTION)
         active = ~self.success & ~self.fallen & (self.elapsed < self.horizon)
         if self.landing == "moved":  # the blocks move first: the move is checked against where they are now
             self.moving, self.velocity = advance_blocks(self.moving, self.velocity, self.frozen | ~active[:, None])
@@ -338,12 +351,13 @@ class MovingMazeEnv(gym.Env):
 
     def __init__(
         self, render_mode: str | None = "rgb_array", horizon: int = HORIZON, deadly_gaps: bool = False,
-        landing: str = "observed",
+        landing: str = "observed", min_action: float = 0.0,
     ):
         self.render_mode = render_mode
         self.horizon = horizon
         self.deadly_gaps = deadly_gaps
         self.landing = landing
+        self.min_action = min_action
         self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(OBS_DIM,), dtype=np.float32)
         self.action_space = gym.spaces.Box(-MAX_ACTION, MAX_ACTION, shape=(ACTION_DIM,), dtype=np.float32)
         self._batch: MovingMazeBatch | None = None
@@ -355,7 +369,8 @@ class MovingMazeEnv(gym.Env):
         else:
             config = sample_config(self.np_random)
         self.config = config
-        self._batch = MovingMazeBatch([config], horizon=self.horizon, deadly_gaps=self.deadly_gaps, landing=self.landing)
+        self._batch = MovingMazeBatch([config], horizon=self.horizon, deadly_gaps=self.deadly_gaps,
+                                      landing=self.landing, min_action=self.min_action)
         return self._batch.obs()[0], self._info()
 
     def step(self, action):

@@ -60,6 +60,12 @@ def _load_split(demo_dir: str | Path, split: str, episodes: int | None) -> tuple
     return configs, seeds, data.env_info.get("env_kwargs", {})
 
 
+def eval_name(split: str, deadly_gaps: bool = False, min_action: float = 0.0) -> str:
+    """The name of an evaluation under these rules, as in ``eval_<name>.json``: e.g. ``unseen``,
+    ``val_deadly_gaps``, ``unseen_deadly_gaps_min_action1.5``."""
+    return split + ("_deadly_gaps" if deadly_gaps else "") + (f"_min_action{min_action:g}" if min_action else "")
+
+
 @dataclass
 class EvalResult:
     split: str
@@ -104,11 +110,12 @@ def rollout(
     record: int = 0,
     deadly_gaps: bool = False,
     landing: str = "observed",
+    min_action: float = 0.0,
 ) -> tuple[EvalResult, list[list[np.ndarray]]]:
     """Roll ``policy`` out in all ``configs`` at once. Returns the result and, for the first ``record`` episodes,
     the agent positions and block states needed to draw them."""
     start = time.perf_counter()
-    env = MovingMazeBatch(configs, horizon=horizon, deadly_gaps=deadly_gaps, landing=landing)
+    env = MovingMazeBatch(configs, horizon=horizon, deadly_gaps=deadly_gaps, landing=landing, min_action=min_action)
     obs = env.reset()
     policy.reset()
     steps = np.full(len(configs), horizon)
@@ -129,7 +136,7 @@ def rollout(
         steps=steps,
         seeds=list(seeds),
         seconds=time.perf_counter() - start,
-        meta={"deadly_gaps": deadly_gaps, "landing": landing, "fell": int(env.fallen.sum())},
+        meta={"deadly_gaps": deadly_gaps, "landing": landing, "min_action": min_action, "fell": int(env.fallen.sum())},
     )
     return result, frames
 
@@ -160,15 +167,18 @@ def evaluate(
     video_dir: str | Path | None = None,
     num_videos: int = 4,
     deadly_gaps: bool = False,
+    min_action: float = 0.0,
 ) -> EvalResult:
-    """Success rate of ``policy`` on the ``seen`` or ``unseen`` Moving Maze configs of ``demo_dir``.
+    """Success rate of ``policy`` on the ``seen``, ``val`` or ``unseen`` Moving Maze configs of ``demo_dir``.
 
-    ``deadly_gaps``: a step into a gap ends the episode as a failure instead of being blocked (see
+    ``deadly_gaps``: a step into a gap ends the episode as a failure instead of being blocked; ``min_action``:
+    every action component's magnitude is raised to at least this (see
     :class:`cotpc.envs.moving_maze.MovingMazeBatch`)."""
     configs, seeds, env_kwargs = _load_split(demo_dir, split, episodes)
     landing = env_kwargs.get("landing", "observed")  # the rule the demos were planned for
     record = min(num_videos, len(configs)) if video_dir else 0
-    result, frames = rollout(policy, configs, seeds, split, record=record, deadly_gaps=deadly_gaps, landing=landing)
+    result, frames = rollout(policy, configs, seeds, split, record=record, deadly_gaps=deadly_gaps, landing=landing,
+                             min_action=min_action)
     if video_dir:
         result.meta["videos"] = [str(p) for p in write_videos(frames, seeds, result.success, video_dir)]
     return result

@@ -16,23 +16,29 @@ from pathlib import Path
 
 import numpy as np
 
-from cotpc.envs.moving_maze import HORIZON
+from cotpc.envs.moving_maze import HORIZON, PAPER_MIN_ACTION
+from cotpc.evaluation.maze import eval_name
 
 # The paper's Table 1 (Moving Maze, unseen configs, success %). Its ablations (Table 4) are on ManiSkill2 only.
 PAPER_UNSEEN = {"bc": 9.0, "dt": 23.0, "bet": 33.0, "cotpc": 44.0}
 BASELINES = ("bc", "dt", "bet", "cotpc")
-# Result key -> (split, deadly_gaps). Training never sees the gap rule (demos never step into a gap), so the same
-# checkpoints are evaluated under both rules; "seen"/"unseen" use the environment's default rule.
-# "val" configs come from the validation seed range: they are for diagnosing and choosing settings, so that
-# nothing is ever tuned on "unseen" (test) configs.
+# Result key -> (split, deadly_gaps, min_action); the key is also the name of the run's eval_<key>.json. Training
+# never sees these rules (the demos never step into a gap and their action components are all in [1.5, 4]), so the
+# same checkpoints are evaluated under each: the default rules, deadly gaps, the paper's literal action range
+# (every component's magnitude >= 1.5: no standing still or creeping) and both. "val" configs come from the
+# validation seed range: they are for diagnosing and choosing settings, so that nothing is ever tuned on "unseen"
+# (test) configs.
 EVAL_KEYS = {
-    "seen": ("seen", False),
-    "val": ("val", False),
-    "unseen": ("unseen", False),
-    "seen_deadly_gaps": ("seen", True),
-    "val_deadly_gaps": ("val", True),
-    "unseen_deadly_gaps": ("unseen", True),
+    eval_name(split, deadly, min_action): (split, deadly, min_action)
+    for deadly, min_action, splits in (
+        (False, 0.0, ("seen", "val", "unseen")),
+        (True, 0.0, ("seen", "val", "unseen")),
+        (False, PAPER_MIN_ACTION, ("val", "unseen")),
+        (True, PAPER_MIN_ACTION, ("val", "unseen")),
+    )
+    for split in splits
 }
+STRICT = eval_name("", True, PAPER_MIN_ACTION)  # suffix of the strictest rules: deadly gaps + the paper's actions
 ABLATIONS = ("only-last", "only-next", "random", "vanilla", "o-shared", "swapped", "bet-prompt", "no-rand-mask", "decoupled")
 
 
@@ -80,7 +86,7 @@ def run(s: ReproduceSettings) -> dict:
     print(f"[2/5] subskill discovery, {s.cost} cost, beta={s.beta}", flush=True)
     seg, _ = label_file(demos / "train.h5", beta=s.beta, min_size=1, cost=s.cost)
     # 3. training, 4. evaluation (an evaluation already on disk for the same weights and configs is reused)
-    split_seeds = {split: load_split_configs(demos, split)[1] for split in {split for split, _ in EVAL_KEYS.values()}}
+    split_seeds = {split: load_split_configs(demos, split)[1] for split in {split for split, *_ in EVAL_KEYS.values()}}
     results: dict = {}
     timings: dict = {}
     names = list(s.policies) + [a for a in s.ablations if a not in s.policies]
@@ -101,15 +107,18 @@ def run(s: ReproduceSettings) -> dict:
             if s.extra_train_args.get("keep_checkpoints"):
                 curves[f"{name}/seed{seed}"] = checkpoint_curve(run_dir, demos, split_seeds["val"], eval_device)
             load = _policy_loader(run_dir, eval_device)
-            for key, (split, deadly) in EVAL_KEYS.items():
+            for key, (split, deadly, min_action) in EVAL_KEYS.items():
                 video = out / "videos" / name if (key == "unseen" and seed == 0) else None
-                summary = _evaluate_cached(run_dir, key, demos, split, split_seeds[split], deadly, load, video)
+                summary = _evaluate_cached(run_dir, key, demos, split, split_seeds[split], deadly, load, video,
+                                           min_action)
                 per_split[key].append(100 * summary["success_rate"])
                 transitions[key].append(summary["mean_region_transitions"])
             print(
                 f"[4/5] {name} seed {seed}: seen {per_split['seen'][-1]:.1f}%  val {per_split['val'][-1]:.1f}%  "
                 f"unseen {per_split['unseen'][-1]:.1f}%  (deadly gaps: seen {per_split['seen_deadly_gaps'][-1]:.1f}%  "
-                f"val {per_split['val_deadly_gaps'][-1]:.1f}%  unseen {per_split['unseen_deadly_gaps'][-1]:.1f}%)",
+                f"val {per_split['val_deadly_gaps'][-1]:.1f}%  unseen {per_split['unseen_deadly_gaps'][-1]:.1f}%; "
+                f"with the paper's action range too: val {per_split['val' + STRICT][-1]:.1f}%  "
+                f"unseen {per_split['unseen' + STRICT][-1]:.1f}%)",
                 flush=True,
             )
         results[name] = {
@@ -167,14 +176,17 @@ def train_parallel(out: Path, data: Path, runs: list[tuple[str, int]], iters: in
 
 
 def checkpoint_curve(run_dir: Path, demos: Path, val_seeds: list[int], device: str) -> dict:
-    """Success on the validation configs (both gap rules) of every checkpoint kept under ``run_dir/checkpoints``:
+    """Success on the validation configs (default rules, deadly gaps, and deadly gaps with the paper's action
+    range) of every checkpoint kept under ``run_dir/checkpoints``:
     how success moves with training length, measured without the test configs. Cached like the final evaluations."""
-    curve: dict = {"iteration": [], "val": [], "val_deadly_gaps": []}
+    keys = ("val", "val_deadly_gaps", "val" + STRICT)
+    curve: dict = {"iteration": [], **{key: [] for key in keys}}
     for ckpt in sorted((run_dir / "checkpoints").glob("step_*")):
         curve["iteration"].append(int(ckpt.name.split("_")[1]))
         load = _policy_loader(ckpt, device)
-        for key, deadly in (("val", False), ("val_deadly_gaps", True)):
-            summary = _evaluate_cached(ckpt, key, demos, "val", val_seeds, deadly, load)
+        for key in keys:
+            _, deadly, min_action = EVAL_KEYS[key]
+            summary = _evaluate_cached(ckpt, key, demos, "val", val_seeds, deadly, load, min_action=min_action)
             curve[key].append(100 * summary["success_rate"])
     return curve
 
@@ -189,14 +201,15 @@ def _policy_loader(run_dir: Path, device: str):
 
 
 def _evaluate_cached(run_dir: Path, key: str, demos: Path, split: str, seeds: list[int], deadly: bool, load,
-                     video_dir: Path | None = None) -> dict:
-    """The summary of ``run_dir/eval_<key>.json``: reused when it is fresh for these weights, configs and gap rule,
+                     video_dir: Path | None = None, min_action: float = 0.0) -> dict:
+    """The summary of ``run_dir/eval_<key>.json``: reused when it is fresh for these weights, configs and rules,
     else evaluated (with ``load()``'s policy) and written."""
     from cotpc.evaluation.maze import evaluate
 
-    summary = _cached_eval(run_dir, key, seeds, deadly)
+    summary = _cached_eval(run_dir, key, seeds, deadly, min_action)
     if summary is None:
-        r = evaluate(load(), demos, split, video_dir=video_dir, num_videos=2, deadly_gaps=deadly)
+        r = evaluate(load(), demos, split, video_dir=video_dir, num_videos=2, deadly_gaps=deadly,
+                     min_action=min_action)
         r.to_json(run_dir / f"eval_{key}.json")
         summary = r.summary()
     return summary
@@ -208,12 +221,13 @@ def _cpu_count() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
-def _cached_eval(run_dir: Path, key: str, seeds: list[int], deadly: bool) -> dict | None:
+def _cached_eval(run_dir: Path, key: str, seeds: list[int], deadly: bool, min_action: float = 0.0) -> dict | None:
     """The summary of ``eval_<key>.json`` if it was written after the current weights, for exactly these
-    configuration seeds and gap rule; else None (evaluate again)."""
+    configuration seeds and rules; else None (evaluate again)."""
     saved = _fresh_eval(run_dir, f"eval_{key}.json")
     try:
-        same = [e["seed"] for e in saved["episodes"]] == list(seeds) and saved["summary"]["deadly_gaps"] == deadly
+        same = ([e["seed"] for e in saved["episodes"]] == list(seeds) and saved["summary"]["deadly_gaps"] == deadly
+                and saved["summary"].get("min_action", 0.0) == min_action)  # files from before the rule: 0
     except (KeyError, TypeError):
         return None
     return saved["summary"] if same else None
@@ -324,16 +338,33 @@ def write_report(results: dict, out: Path) -> Path:
             f"{r['unseen']['region_transitions']:.2f} | {cell(r['seen_deadly_gaps'])} | {cell(r['val_deadly_gaps'])} | "
             f"{cell(r['unseen_deadly_gaps'])} | {PAPER_UNSEEN.get(p, '–')} |"
         )
+    m = f"{PAPER_MIN_ACTION:g}"
+    lines += [
+        "",
+        f"**The paper's action range.** The paper gives the actions as displacements with \"both components in "
+        f"[{m}, 4]\". Read as a rule of the environment, every action component's magnitude is raised to at least "
+        f"{m} (sign kept): a policy cannot stand still at a gap's edge or creep. Same checkpoints "
+        f"(`cotpc eval RUN --min-action {m} [--deadly-gaps]`):",
+        "",
+        "| policy | val | unseen | val, deadly gaps | unseen, deadly gaps | paper unseen |",
+        "|---|---|---|---|---|---|",
+    ]
+    for p in policies:
+        r = results[p]
+        lines.append(f"| {p} | {cell(r[f'val_min_action{m}'])} | {cell(r[f'unseen_min_action{m}'])} | "
+                     f"{cell(r['val' + STRICT])} | {cell(r['unseen' + STRICT])} | {PAPER_UNSEEN.get(p, '–')} |")
     if meta["ablations"]:
         lines += ["", "## CoTPC ablations (paper Table 4 presets, one seed each)", "",
-                  "| preset | seen | val | unseen | val, deadly gaps | unseen, deadly gaps |",
-                  "|---|---|---|---|---|---|"]
+                  "| preset | seen | val | unseen | val, deadly gaps | unseen, deadly gaps "
+                  "| val, deadly gaps + paper actions | unseen, deadly gaps + paper actions |",
+                  "|---|---|---|---|---|---|---|---|"]
         for a in ["cotpc"] * ("cotpc" in results) + list(meta["ablations"]):
             r = results[a]
             name = f"{a} (full method, seed 0)" if a == "cotpc" else a
             first = {k: r[k]["runs"][0] for k in EVAL_KEYS}  # seed 0 of the full method, to compare like with like
             lines.append(f"| {name} | {first['seen']:.1f} | {first['val']:.1f} | {first['unseen']:.1f} | "
-                         f"{first['val_deadly_gaps']:.1f} | {first['unseen_deadly_gaps']:.1f} |")
+                         f"{first['val_deadly_gaps']:.1f} | {first['unseen_deadly_gaps']:.1f} | "
+                         f"{first['val' + STRICT]:.1f} | {first['unseen' + STRICT]:.1f} |")
     figures = _plots(results, out, policies + list(meta["ablations"]))
     lines += ["", "## Figures", ""] + [f"![{f.stem}]({f.name})" for f in figures]
     videos = sorted((out / "videos").glob("*/*.gif")) if (out / "videos").exists() else []
@@ -355,11 +386,12 @@ def _plots(results: dict, out: Path, names: list[str]) -> list[Path]:
     # Success bars
     fig, ax = plt.subplots(figsize=(1.5 + 1.1 * len(names), 3.4))
     x = np.arange(len(names))
-    width = 0.8 / len(EVAL_KEYS)
-    for k, key in enumerate(EVAL_KEYS):
+    keys = ["seen", "val", "unseen", "unseen_deadly_gaps", eval_name("unseen", False, PAPER_MIN_ACTION), "unseen" + STRICT]
+    width = 0.8 / len(keys)
+    for k, key in enumerate(keys):
         means = [results[n][key]["mean"] for n in names]
         stds = [results[n][key]["std"] for n in names]
-        ax.bar(x + (k - (len(EVAL_KEYS) - 1) / 2) * width, means, width, yerr=stds, label=key.replace("_", " "),
+        ax.bar(x + (k - (len(keys) - 1) / 2) * width, means, width, yerr=stds, label=key.replace("_", " "),
                capsize=2)
     ax.set_xticks(x, names, rotation=30, ha="right", fontsize=8)
     ax.set_ylabel("success rate (%)")
@@ -376,15 +408,17 @@ def _plots(results: dict, out: Path, names: list[str]) -> list[Path]:
 
 
 def plot_val_success(curves: dict, names: list[str], path: Path) -> Path:
-    """Validation success against training iterations, one panel per gap rule, one line per run."""
+    """Validation success against training iterations, one panel per rule, one line per run."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), sharey=True)
+    keys = [k for k in ("val", "val_deadly_gaps", "val" + STRICT) if all(k in c for c in curves.values())]
+    fig, axes = plt.subplots(1, len(keys), figsize=(4.5 * len(keys), 3.4), sharey=True, squeeze=False)
+    axes = axes[0]
     colours = {n: f"C{i % 10}" for i, n in enumerate(names)}
-    for ax, key in zip(axes, ("val", "val_deadly_gaps")):
+    for ax, key in zip(axes, keys):
         for run, c in curves.items():
             name, seed = run.rsplit("/seed", 1)
             if name in colours and c["iteration"]:
@@ -393,7 +427,7 @@ def plot_val_success(curves: dict, names: list[str], path: Path) -> Path:
         ax.set_title(key.replace("_", " "), fontsize=9)
         ax.set_xlabel("iteration")
     axes[0].set_ylabel("validation success (%)")
-    axes[1].legend(fontsize=7, ncol=2)
+    axes[-1].legend(fontsize=7, ncol=2)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
