@@ -102,7 +102,10 @@ def test_demos_also_succeed_under_the_papers_action_range(demo_dir):
     # The demonstrator's action components already have magnitudes in [1.5, 4]: the rule changes none of them.
     data = load_trajectories(demo_dir / "train.h5")
     result = evaluate(ReplayPolicy([ep.actions for ep in data.episodes]), demo_dir, "seen", min_action=1.5)
-    assert result.success_rate == 1.0 and result.meta["min_action"] == 1.5
+    assert result.success_rate == 1.0 and result.meta["min_action"] == 1.5 and result.meta["raised_share"] == 0.0
+    # A policy that stands still is moved at every step: all of its action components are raised.
+    result = evaluate(ReplayPolicy([np.zeros((0, 2))] * len(data.episodes)), demo_dir, "seen", min_action=1.5)
+    assert result.meta["raised_share"] == 1.0
 
 
 def test_eval_cli_on_a_trained_run(demo_dir, tmp_path, capsys):

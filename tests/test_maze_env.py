@@ -250,6 +250,7 @@ def test_min_action_rule_raises_small_components_keeping_their_sign():
     env = MovingMazeBatch([make_config(agent_start=(30.0, 70.0))] * 4, min_action=1.5)
     obs, _, _ = env.step(actions)
     np.testing.assert_allclose(obs[:, :2] - [30.0, 70.0], [[1.5, -1.5], [1.5, 1.5], [-3.0, 2.5], [-4.0, 1.5]])
+    assert (env.raised_components, env.active_components) == (5, 8)
     # The default rule moves by the (clipped) action itself: the agent can creep or stand still.
     env = MovingMazeBatch([make_config(agent_start=(30.0, 70.0))] * 4)
     obs, _, _ = env.step(actions)

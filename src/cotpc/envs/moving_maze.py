@@ -277,6 +277,8 @@ class MovingMazeBatch:
         self.success = np.zeros(len(c), dtype=bool)
         self.fallen = np.zeros(len(c), dtype=bool)
         self.elapsed = np.zeros(len(c), dtype=np.int64)
+        # Action components of active episodes, and how many of them the min_action rule raised.
+        self.active_components = self.raised_components = 0
         # Furthest region reached along the route (number of completed region transitions).
         self.progress = np.maximum(region_of(self.agent, self.start_y, self.moving), 0)
         return self.obs()
@@ -309,10 +311,12 @@ class MovingMazeBatch:
     def step(self, actions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Apply (B, 2) displacements. Returns (obs, success, done); done = success, fallen or horizon reached."""
         actions = check_actions(actions, self.num_envs)
-        if self.min_action > 0:
-            actions = np.where(actions >= 0, 1.0, -1.0) * np.maximum(np.abs(actions), self.min_action)
-        actions = np.clip(actions, -MAX_ACTION, MAX_ACTION)
         active = ~self.success & ~self.fallen & (self.elapsed < self.horizon)
+        if self.min_action > 0:
+            self.raised_components += int((np.abs(actions[active]) < self.min_action).sum())
+            actions = np.where(actions >= 0, 1.0, -1.0) * np.maximum(np.abs(actions), self.min_action)
+        self.active_components += int(active.sum()) * ACTION_DIM
+        actions = np.clip(actions, -MAX_ACTION, MAX_ACTION)
         if self.landing == "moved":  # the blocks move first: the move is checked against where they are now
             self.moving, self.velocity = advance_blocks(self.moving, self.velocity, self.frozen | ~active[:, None])
         # With landing="observed" the move is checked against the block positions the agent observed; a move that

@@ -138,6 +138,8 @@ def rollout(
         seconds=time.perf_counter() - start,
         meta={"deadly_gaps": deadly_gaps, "landing": landing, "min_action": min_action, "fell": int(env.fallen.sum())},
     )
+    if min_action:  # how often the policy wanted a smaller move than the rule allows
+        result.meta["raised_share"] = env.raised_components / max(env.active_components, 1)
     return result, frames
 
 
