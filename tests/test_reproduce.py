@@ -26,6 +26,7 @@ def test_reproduce_runs_end_to_end_and_resumes(tmp_path, capsys):
         assert summary["episodes"] == n and summary["deadly_gaps"] == ("deadly" in key)
         assert summary["min_action"] == (1.5 if "min_action" in key else 0.0)
         assert results["cotpc"][key]["runs"] == [100 * summary["success_rate"]]
+        assert ("raised_share" in results["cotpc"][key]) == ("min_action" in key)
     assert results["meta"]["ablations"] == ["vanilla"]
     assert results["meta"]["settings"]["iters"] == 6
     # --quick trains the BeT-style heads with 128 k-means centres (chosen on validation configs)
