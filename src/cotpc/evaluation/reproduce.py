@@ -38,7 +38,9 @@ EVAL_KEYS = {
     )
     for split in splits
 }
-STRICT = eval_name("", True, PAPER_MIN_ACTION)  # suffix of the strictest rules: deadly gaps + the paper's actions
+# Key suffixes: the paper's action range alone, and with deadly gaps (the strictest rules).
+PAPER_ACTIONS = eval_name("", False, PAPER_MIN_ACTION)
+STRICT = eval_name("", True, PAPER_MIN_ACTION)
 ABLATIONS = ("only-last", "only-next", "random", "vanilla", "o-shared", "swapped", "bet-prompt", "no-rand-mask", "decoupled")
 
 
@@ -108,10 +110,9 @@ def run(s: ReproduceSettings) -> dict:
             if s.extra_train_args.get("keep_checkpoints"):
                 curves[f"{name}/seed{seed}"] = checkpoint_curve(run_dir, demos, split_seeds["val"], eval_device)
             load = _policy_loader(run_dir, eval_device)
-            for key, (split, deadly, min_action) in EVAL_KEYS.items():
+            for key, (split, *_) in EVAL_KEYS.items():
                 video = out / "videos" / name if (key == "unseen" and seed == 0) else None
-                summary = _evaluate_cached(run_dir, key, demos, split, split_seeds[split], deadly, load, video,
-                                           min_action)
+                summary = _evaluate_cached(run_dir, key, demos, split_seeds[split], load, video)
                 per_split[key].append(100 * summary["success_rate"])
                 transitions[key].append(summary["mean_region_transitions"])
                 if "raised_share" in summary:
@@ -189,8 +190,7 @@ def checkpoint_curve(run_dir: Path, demos: Path, val_seeds: list[int], device: s
         curve["iteration"].append(int(ckpt.name.split("_")[1]))
         load = _policy_loader(ckpt, device)
         for key in keys:
-            _, deadly, min_action = EVAL_KEYS[key]
-            summary = _evaluate_cached(ckpt, key, demos, "val", val_seeds, deadly, load, min_action=min_action)
+            summary = _evaluate_cached(ckpt, key, demos, val_seeds, load)
             curve[key].append(100 * summary["success_rate"])
     return curve
 
@@ -204,14 +204,15 @@ def _policy_loader(run_dir: Path, device: str):
     return functools.cache(lambda: load_policy(run_dir, device=device))
 
 
-def _evaluate_cached(run_dir: Path, key: str, demos: Path, split: str, seeds: list[int], deadly: bool, load,
-                     video_dir: Path | None = None, min_action: float = 0.0) -> dict:
-    """The summary of ``run_dir/eval_<key>.json``: reused when it is fresh for these weights, configs and rules,
-    else evaluated (with ``load()``'s policy) and written."""
+def _evaluate_cached(run_dir: Path, key: str, demos: Path, seeds: list[int], load,
+                     video_dir: Path | None = None) -> dict:
+    """The summary of ``run_dir/eval_<key>.json`` (split and rules from ``EVAL_KEYS[key]``): reused when it is fresh
+    for these weights, configs and rules, else evaluated (with ``load()``'s policy) and written."""
     from cotpc.evaluation.maze import evaluate
 
-    summary = _cached_eval(run_dir, key, seeds, deadly, min_action)
+    summary = _cached_eval(run_dir, key, seeds)
     if summary is None:
+        split, deadly, min_action = EVAL_KEYS[key]
         r = evaluate(load(), demos, split, video_dir=video_dir, num_videos=2, deadly_gaps=deadly,
                      min_action=min_action)
         r.to_json(run_dir / f"eval_{key}.json")
@@ -225,9 +226,10 @@ def _cpu_count() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
-def _cached_eval(run_dir: Path, key: str, seeds: list[int], deadly: bool, min_action: float = 0.0) -> dict | None:
+def _cached_eval(run_dir: Path, key: str, seeds: list[int]) -> dict | None:
     """The summary of ``eval_<key>.json`` if it was written after the current weights, for exactly these
-    configuration seeds and rules; else None (evaluate again)."""
+    configuration seeds and the rules of ``EVAL_KEYS[key]``; else None (evaluate again)."""
+    _, deadly, min_action = EVAL_KEYS[key]
     saved = _fresh_eval(run_dir, f"eval_{key}.json")
     try:
         same = ([e["seed"] for e in saved["episodes"]] == list(seeds) and saved["summary"]["deadly_gaps"] == deadly
@@ -356,8 +358,8 @@ def write_report(results: dict, out: Path) -> Path:
     ]
     for p in policies:
         r = results[p]
-        unseen = r[f"unseen_min_action{m}"]
-        lines.append(f"| {p} | {cell(r[f'val_min_action{m}'])} | {cell(unseen)} | "
+        unseen = r["unseen" + PAPER_ACTIONS]
+        lines.append(f"| {p} | {cell(r['val' + PAPER_ACTIONS])} | {cell(unseen)} | "
                      f"{100 * unseen.get('raised_share', float('nan')):.1f}% | "
                      f"{cell(r['val' + STRICT])} | {cell(r['unseen' + STRICT])} | {PAPER_UNSEEN.get(p, '–')} |")
     if meta["ablations"]:
@@ -393,7 +395,7 @@ def _plots(results: dict, out: Path, names: list[str]) -> list[Path]:
     # Success bars
     fig, ax = plt.subplots(figsize=(1.5 + 1.1 * len(names), 3.4))
     x = np.arange(len(names))
-    keys = ["seen", "val", "unseen", "unseen_deadly_gaps", eval_name("unseen", False, PAPER_MIN_ACTION), "unseen" + STRICT]
+    keys = ["seen", "val", "unseen", "unseen_deadly_gaps", "unseen" + PAPER_ACTIONS, "unseen" + STRICT]
     width = 0.8 / len(keys)
     for k, key in enumerate(keys):
         means = [results[n][key]["mean"] for n in names]
