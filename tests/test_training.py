@@ -29,7 +29,7 @@ def test_train_writes_a_loadable_run(data, tmp_path):
         assert (run / f).exists(), f
     info = json.loads((run / "config.json").read_text())
     assert info["step"] == 20 and info["policy"]["name"] == "cotpc" and info["obs_dim"] == 6
-    assert info["val"]["bc"] > 0 and len(info["dataset"]["val_episode_ids"]) == 1
+    assert info["val"]["last_action_err"] > 0 and info["val"]["all_bc"] > 0 and len(info["dataset"]["val_episode_ids"]) == 1
     assert list((run / "tb").iterdir())
     pol = load_policy(run)
     assert pol.select_action(np.zeros((2, 6), np.float32)).shape == (2, 2)
@@ -80,7 +80,7 @@ def test_bf16_tracks_fp32(data, tmp_path):
     for bf16 in (False, True):
         run = train(TrainConfig(data=data, out=tmp_path / f"bf16_{bf16}", iters=40, val_every=20, bf16=bf16,
                                 **{k: v for k, v in TINY.items() if k != "val_every"}))
-        vals[bf16] = json.loads((run / "config.json").read_text())["val"]["loss"]
+        vals[bf16] = json.loads((run / "config.json").read_text())["val"]["all_loss"]
     assert abs(vals[True] - vals[False]) < 0.1 * vals[False], vals
 
 
@@ -93,3 +93,31 @@ def test_cli_help_documents_flags(capsys):
     out = capsys.readouterr().out
     for flag in ("--data", "--policy", "--resume", "--bf16", "--ckpt-every", "--val-fraction"):
         assert flag in out
+
+
+def test_validation_reports_the_inference_regime_and_best_selects_on_it(data, tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    run = train(TrainConfig(data=data, out=tmp_path / "run", iters=30, **TINY))
+    val = json.loads((run / "config.json").read_text())["val"]
+    for k in ("last_action_err", "last_ce", "last_centre_acc", "last_offset", "last_cot", "last_bc", "all_bc", "all_cot"):
+        assert k in val, k
+    assert 0 <= val["last_centre_acc"] <= 1
+    acc = EventAccumulator(str(run / "tb"))
+    acc.Reload()
+    errs = {e.step: e.value for e in acc.Scalars("val/last_action_err")}
+    best = json.loads((run / "best" / "config.json").read_text())
+    assert best["val"]["last_action_err"] == pytest.approx(min(errs.values()), rel=1e-5)
+    assert best["step"] == min(errs, key=errs.get)
+
+
+def test_inference_metrics_score_what_select_action_outputs():
+    from test_policies import P, Q, build
+
+    trajs = synthetic_trajectories(n_episodes=8, obs_dim=Q, action_dim=P, length=20, seed=0)
+    for name in ("cotpc", "bc", "dt"):
+        model, ds = build(name, trajs)
+        batch = ds.windows(torch.arange(0, 40))
+        m = model.eval().inference_metrics(batch)
+        want = ((model.predict(batch) - batch["actions"][:, -1]) ** 2).mean()
+        torch.testing.assert_close(m["action_err"], want)

@@ -135,9 +135,10 @@ class WindowDataset:
 
     def sample(self, batch_size: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
         """Uniformly random window ends, plus the random CoT-mask length l in {0..T-1} per sample."""
-        ends = torch.randint(self.size, (batch_size,), generator=generator).to(self.device)
+        dev = generator.device  # a generator on the data's device samples there (no host round trip on a GPU)
+        ends = torch.randint(self.size, (batch_size,), generator=generator, device=dev).to(self.device)
         batch = self.windows(ends)
-        batch["cot_hide"] = torch.randint(self.context, (batch_size,), generator=generator).to(self.device)
+        batch["cot_hide"] = torch.randint(self.context, (batch_size,), generator=generator, device=dev).to(self.device)
         return batch
 
 

@@ -444,8 +444,10 @@ def plot_val_success(curves: dict, names: list[str], path: Path) -> Path:
 
 
 def plot_learning_curves(runs: Path, names: list[str], path: Path) -> Path:
-    """Training and validation action loss of ``runs/<name>/seed0`` for each name (from TensorBoard logs), one
-    panel per policy: the losses of MSE and centre/offset heads are not on one scale."""
+    """BC loss of ``runs/<name>/seed0`` for each name (from TensorBoard logs), one panel per policy (the losses
+    of MSE and centre/offset heads are not on one scale): in training (all window positions, random CoT mask)
+    and on validation windows at the last position, as at inference (``val/last_bc``). Runs logged before the
+    last-position metrics existed fall back to their all-position ``val/bc``, labelled so."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -456,10 +458,13 @@ def plot_learning_curves(runs: Path, names: list[str], path: Path) -> Path:
     fig, axes = plt.subplots(rows, cols, figsize=(3.0 * cols, 2.4 * rows), squeeze=False)
     for ax, n in zip(axes.flat, names):
         logdir = runs / n / "seed0" / "tb"
-        for tag, style in (("train/bc", "-"), ("val/bc", "o-")):
-            steps, values = _scalar(logdir, tag)
-            if steps:
-                ax.plot(steps, values, style, ms=3, label=tag.split("/")[0])
+        for tags, style, label in ((("train/bc",), "-", "train (all positions)"),
+                                   (("val/last_bc", "val/bc"), "o-", "val (last position)")):
+            for tag in tags:
+                steps, values = _scalar(logdir, tag)
+                if steps:
+                    ax.plot(steps, values, style, ms=3, label=label if tag != "val/bc" else "val (all positions)")
+                    break
         ax.set_title(n, fontsize=9)
         ax.set_xlabel("iteration", fontsize=8)
         ax.tick_params(labelsize=7)
@@ -467,7 +472,7 @@ def plot_learning_curves(runs: Path, names: list[str], path: Path) -> Path:
             ax.legend(fontsize=7)
     for ax in list(axes.flat)[len(names):]:
         ax.axis("off")
-    fig.supylabel("action loss", fontsize=8)
+    fig.supylabel("BC loss", fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

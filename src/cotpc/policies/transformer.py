@@ -13,6 +13,10 @@ t-T+1+i. Who may attend to whom is decided by :func:`build_mask` from this layou
   with l drawn per sample;
 - windows that start before the episode are left-padded; padded tokens are hidden from everyone (each token
   still sees itself, so no softmax row is empty and nothing turns NaN).
+
+Attention runs ``F.scaled_dot_product_attention`` on CUDA (fused kernels) and :class:`MaskedAttention`, a plain
+matmul + masked softmax with a hand-written backward, on a CPU: for our small heads (29 tokens x 16 dims) the CPU
+SDPA kernels are slower (measured in docs/performance.md), and their bf16 backward especially so.
 """
 
 from __future__ import annotations
@@ -84,8 +88,63 @@ def build_mask(layout: Layout, valid: torch.Tensor | None = None, cot_hide: torc
     return mask[:, None]
 
 
+def _dropout(p: float) -> nn.Module:
+    """Dropout, or nothing at p = 0 (the default): a p = 0 dropout in training mode still costs a pass over
+    its input, and on a CPU with little memory bandwidth each pass over a (B, L, d) activation shows."""
+    return nn.Dropout(p) if p > 0 else nn.Identity()
+
+
+class MaskedAttention(torch.autograd.Function):
+    """softmax(q k^T / sqrt(d) + bias) v for (B, H, L, d) tensors, with an additive (B or 1, 1, L, L) bias.
+
+    Exact (the same maths as SDPA; tested against it on values and gradients). Why a hand-written backward: the
+    autograd graph of the same expression hands CPU ``bmm`` non-contiguous batched operands, which it then
+    copies matrix by matrix (~12K small copies per step). Scores and softmax are in fp32 even when q, k, v are
+    bf16, so bf16 loses nothing in the softmax.
+    """
+
+    @staticmethod
+    def forward(ctx, q, k, v, bias):
+        q, k, v = q.contiguous(), k.contiguous(), v.contiguous()
+        scale = q.shape[-1] ** -0.5
+        with torch.autocast(q.device.type, enabled=False):
+            scores = torch.matmul(q, k.transpose(-1, -2)).float().mul_(scale).add_(bias)
+            p = torch.softmax(scores, dim=-1)
+            y = torch.matmul(p.to(v.dtype), v)
+        ctx.save_for_backward(q, k, v, p)
+        ctx.scale = scale
+        return y
+
+    @staticmethod
+    def backward(ctx, dy):
+        q, k, v, p = ctx.saved_tensors
+        dy = dy.contiguous().to(v.dtype)
+        with torch.autocast(q.device.type, enabled=False):
+            pv = p.to(v.dtype)
+            dv = torch.matmul(pv.transpose(-1, -2), dy)
+            dp = torch.matmul(dy, v.transpose(-1, -2)).float()
+            ds = (dp - (dp * p).sum(-1, keepdim=True)).mul_(p).mul_(ctx.scale).to(q.dtype)
+            dq = torch.matmul(ds, k)
+            dk = torch.matmul(ds.transpose(-1, -2), q)
+        return dq, dk, dv, None
+
+
+def mask_to_bias(mask: torch.Tensor) -> torch.Tensor:
+    """Boolean attention mask (True = may attend) -> additive fp32 bias (0 or -inf), shaped (B or 1, 1, L, L)."""
+    bias = torch.zeros(mask.shape, dtype=torch.float32, device=mask.device).masked_fill_(~mask, float("-inf"))
+    return bias.view(-1, 1, *mask.shape[-2:])
+
+
+def attention(q, k, v, mask: torch.Tensor, bias: torch.Tensor | None, dropout_p: float) -> torch.Tensor:
+    """Masked multi-head attention: fused SDPA on CUDA (or with attention dropout), :class:`MaskedAttention`
+    on a CPU. ``bias`` is ``mask_to_bias(mask)`` (computed once per forward pass, shared by the blocks)."""
+    if q.device.type == "cuda" or dropout_p > 0 or bias is None:
+        return F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=dropout_p)
+    return MaskedAttention.apply(q, k, v, bias)
+
+
 class Block(nn.Module):
-    """Pre-LN transformer block with fused QKV and ``F.scaled_dot_product_attention``."""
+    """Pre-LN transformer block with fused QKV and :func:`attention`."""
 
     def __init__(self, d: int, n_heads: int, dropout: float):
         super().__init__()
@@ -93,17 +152,19 @@ class Block(nn.Module):
         self.ln1, self.ln2 = nn.LayerNorm(d), nn.LayerNorm(d)
         self.qkv = nn.Linear(d, 3 * d)
         self.proj = nn.Linear(d, d)
-        self.mlp = nn.Sequential(nn.Linear(d, 4 * d), nn.GELU(), nn.Linear(4 * d, d), nn.Dropout(dropout))
-        self.resid_drop = nn.Dropout(dropout)
+        self.mlp = nn.Sequential(nn.Linear(d, 4 * d), nn.GELU(), nn.Linear(4 * d, d), _dropout(dropout))
+        self.resid_drop = _dropout(dropout)
 
-    def forward(self, x: torch.Tensor, mask: torch.Tensor, rows: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, mask: torch.Tensor, bias: torch.Tensor | None = None,
+                rows: torch.Tensor | None = None) -> torch.Tensor:
         """``rows``: compute the output of these token positions only (every token is still attended to)."""
         B, L, D = x.shape
         H = self.n_heads
         q, k, v = self.qkv(self.ln1(x)).view(B, L, 3, H, D // H).permute(2, 0, 3, 1, 4)
-        if rows is not None:  # inference: the action heads read a few tokens of the last block only
+        if rows is not None:  # the heads read a few tokens of the last block only
             q, x, mask = q[:, :, rows], x[:, rows], mask[..., rows, :]
-        y = F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=self.dropout if self.training else 0.0)
+            bias = bias[..., rows, :] if bias is not None else None
+        y = attention(q, k, v, mask, bias, self.dropout if self.training else 0.0)
         x = x + self.resid_drop(self.proj(y.transpose(1, 2).reshape(B, x.shape[1], D)))
         return x + self.mlp(self.ln2(x))
 
@@ -121,11 +182,12 @@ class GPT(nn.Module):
         self.cot_tokens = nn.Parameter(torch.zeros(n_cot, d)) if n_cot else None  # no positional embedding
         self.global_emb = nn.Embedding(max_timestep, d)  # episode timestep, DT style
         self.local_emb = nn.Parameter(torch.zeros(cfg.context, d))  # index in the window
-        self.drop = nn.Dropout(cfg.dropout)
+        self.drop = _dropout(cfg.dropout)
         self.blocks = nn.ModuleList([Block(d, cfg.n_heads, cfg.dropout) for _ in range(cfg.n_layers)])
         self.ln_f = nn.LayerNorm(d)
-        # the inference mask never changes: build it once (a buffer follows .to(device), not saved)
+        # the inference mask never changes: build it once (buffers follow .to(device), not saved)
         self.register_buffer("base_mask", build_mask(self.layout), persistent=False)
+        self.register_buffer("base_bias", mask_to_bias(self.base_mask), persistent=False)
 
     def forward(
         self,
@@ -141,7 +203,8 @@ class GPT(nn.Module):
 
         Returns the final LayerNorm'd features (B, L, d) and, if ``keep_layer`` is set, the raw output of that
         block (for the CoT decoder). With ``rows`` (token positions) the last block computes only those tokens
-        and the features are (B, len(rows), d): at inference the action heads need two or three of them.
+        and the features are (B, len(rows), d): the heads read only some tokens (in training the state and CoT
+        tokens, at inference two or three), so the last block computes only those.
         """
         B, T, _ = states.shape
         lay = self.layout
@@ -158,13 +221,14 @@ class GPT(nn.Module):
             parts.append(s)
         x = self.drop(torch.cat(parts, dim=1) if len(parts) > 1 else parts[0])
         if valid is None and cot_hide is None:
-            mask = self.base_mask
+            mask, bias = self.base_mask, self.base_bias
         else:
             mask = build_mask(lay, valid, cot_hide if lay.C else None)
+            bias = mask_to_bias(mask)
         kept = None
         last = len(self.blocks) - 1
         for j, block in enumerate(self.blocks):
-            x = block(x, mask, rows if j == last else None)
+            x = block(x, mask, bias, rows if j == last else None)
             if j == keep_layer:
                 kept = x
         return self.ln_f(x), kept

@@ -6,12 +6,15 @@ NCCL on GPU). The global batch is split across processes; rank 0 validates, logs
 
 A run directory holds the latest checkpoint (``config.json`` + ``model.safetensors``), ``training_state.pt``
 (model, optimiser, scheduler, RNG states, step: everything ``--resume`` needs), ``best/`` (the checkpoint with
-the lowest validation action loss on held-out demos of the training file) and ``tb/`` (TensorBoard).
+the lowest validation action error at the last window position, as at inference, on held-out demos of the
+training file), ``timing.json`` (wall time of each part of the loop) and ``tb/`` (TensorBoard).
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import json
 import math
 import os
 import sys
@@ -32,6 +35,7 @@ from cotpc.policies.config import PRESETS, get_preset, task_defaults
 from cotpc.policies.kmeans import kmeans
 from cotpc.policies.model import make_model
 from cotpc.policies.policy import CheckpointError, config_to_dict, load_state, save_checkpoint
+from cotpc.training.precision import PrecisionChoice, autocast_for, choose_precision
 
 PolicyName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
 
@@ -91,8 +95,8 @@ class TrainConfig:
     device: Literal["auto", "cpu", "cuda"] = "auto"
     """Device (auto: cuda if available)."""
     bf16: Optional[bool] = None
-    """bfloat16 autocast of the forward pass (weights stay fp32). Default: on for CUDA; on a CPU only if a quick
-    probe finds bf16 matmuls faster than fp32 (4x on AVX512-BF16 EPYC hosts, slower on some Xeons)."""
+    """bfloat16 autocast of the forward pass (weights stay fp32). Default: on for CUDA; on a CPU, chosen by
+    timing this run's own training step in both precisions (printed and stored in config.json)."""
     threads: Optional[int] = None
     """CPU threads per process (default: torch's; under torchrun on CPU, cores / processes)."""
     progress: bool = True
@@ -129,41 +133,54 @@ def _lr_lambda(cfg, iters: int):
     return f
 
 
+# The validation metric that selects best/ and draws the learning curves: the predicted action's error at the
+# last window position, the one select_action uses (all-position losses reward the CoT target leak).
+SELECT_ON = "last_action_err"
+
+
 @torch.no_grad()
 def evaluate_loss(model: nn.Module, ds: WindowDataset, autocast, chunk: int = 1024) -> dict[str, float]:
-    """Mean losses over every window of ``ds`` (no random CoT mask, dropout off)."""
+    """Validation metrics over every window of ``ds`` (no random CoT mask, dropout off), in two regimes:
+
+    - ``last_*``: at the last window position, as at inference (:meth:`inference_metrics`): what to select on;
+    - ``all_*``: the training loss terms averaged over all window positions (where CoT tokens can see the
+      targets of the earlier positions): kept for comparison, never for selection."""
     was_training = model.training
     model.eval()
     sums: dict[str, float] = {}
     for start in range(0, len(ds), chunk):
         ends = torch.arange(start, min(start + chunk, len(ds)), device=ds.device)
+        batch = ds.windows(ends)
         with autocast():
-            _, metrics = model.loss(ds.windows(ends))
-        for k, v in metrics.items():
-            sums[k] = sums.get(k, 0.0) + float(v) * len(ends)
+            _, metrics = model.loss(batch)
+            last = model.inference_metrics(batch)
+        for prefix, group in (("all_", metrics), ("last_", last)):
+            for k, v in group.items():
+                sums[prefix + k] = sums.get(prefix + k, 0.0) + float(v) * len(ends)
     model.train(was_training)
     return {k: v / len(ds) for k, v in sums.items()}
 
 
-def bf16_is_faster(device: str) -> bool:
-    """Use bf16 autocast? Always on CUDA (if supported); on a CPU only when it is measurably faster.
+def probe_precision(model: nn.Module, cfg, ds: WindowDataset, batch_size: int, device: str, grad_clip: float):
+    """:func:`choose_precision` on copies of the model and a fresh optimiser, with fixed batches drawn from a
+    generator of its own; the global RNG (dropout) is restored after, so the run is the same as with an
+    explicit ``--bf16``."""
+    probe = copy.deepcopy(model)
+    optimizer, scheduler = make_optimizer(probe, cfg, 10**6, device)
+    params = list(probe.parameters())
+    gen = torch.Generator(device=device if device.startswith("cuda") else "cpu")
+    gen.manual_seed(12345)
+    rng = _rng_state(gen)
+    probe.train()
 
-    The probe alternates fp32 and bf16 matmuls of a training-sized shape and compares the fastest of several
-    rounds of each, so a busy machine (which only ever slows a round down) cannot flip the decision.
-    """
-    if device.startswith("cuda"):
-        return torch.cuda.is_bf16_supported()
-    a, b = torch.randn(2048, 128), torch.randn(128, 512)
-    best = {torch.float32: float("inf"), torch.bfloat16: float("inf")}
-    pairs = {dt: (a.to(dt), b.to(dt)) for dt in best}
-    for _ in range(7):
-        for dt, (x, y) in pairs.items():
-            x @ y
-            t = time.perf_counter()
-            for _ in range(5):
-                x @ y
-            best[dt] = min(best[dt], time.perf_counter() - t)
-    return best[torch.bfloat16] < 0.8 * best[torch.float32]
+    def make_step(bf16: bool, batch: int):
+        sample, autocast = ds.sample(batch, gen), autocast_for(device, bf16)
+        return lambda: train_step(probe, params, sample, optimizer, scheduler, grad_clip, autocast)
+
+    try:
+        return choose_precision(make_step, batch_size, device)
+    finally:
+        _set_rng_state(gen, rng)
 
 
 def train_step(train_model: nn.Module, params, batch: dict, optimizer, scheduler, grad_clip: float, autocast):
@@ -198,6 +215,14 @@ def _set_rng_state(gen: torch.Generator, s: dict) -> None:
     torch.set_rng_state(s["torch"])
     if "cuda" in s and torch.cuda.is_available():
         torch.cuda.set_rng_state_all(s["cuda"])
+
+
+def _append_timing(run_dir: Path, segment: dict) -> None:
+    """timing.json: one entry per training session of the run (a resumed run adds one), so the wall time of
+    each part of the loop, and how a run was spread over sessions, can be read back."""
+    path = run_dir / "timing.json"
+    segments = json.loads(path.read_text()) if path.exists() else []
+    path.write_text(json.dumps(segments + [segment], indent=1))
 
 
 def train(config: TrainConfig) -> Path:
@@ -254,7 +279,9 @@ def train(config: TrainConfig) -> Path:
         model.centres.copy_(kmeans(ds.actions.cpu(), cfg.n_centres, seed=config.seed))
     model.to(device)
     optimizer, scheduler = make_optimizer(model, cfg, config.iters, device)
-    gen = torch.Generator().manual_seed(config.seed * 1000 + rank + 1)
+    # batches are sampled on the device (a CUDA generator on a GPU: no host round trip per step)
+    gen = torch.Generator(device=device if device.startswith("cuda") else "cpu")
+    gen.manual_seed(config.seed * 1000 + rank + 1)
     step, best_val = 0, float("inf")
 
     meta = {
@@ -284,15 +311,22 @@ def train(config: TrainConfig) -> Path:
     elif not config.resume and state_path.exists():
         raise FileExistsError(f"{run_dir} already holds a run; pass --resume to continue it or choose another --out")
 
+    local_batch = cfg.batch_size // world
     if config.bf16 is None:
-        bf16 = torch.tensor(bf16_is_faster(device))
+        choice = probe_precision(model, cfg, ds, local_batch, device, config.grad_clip) if main_proc else None
+        bf16 = torch.tensor(bool(choice.bf16) if choice else False)
         if ddp:  # every rank must agree
             dist.broadcast(bf16, 0)
         config = dataclasses.replace(config, bf16=bool(bf16))
+    else:
+        how = "kept from the run being resumed" if config.resume and step else "set by --bf16"
+        choice = PrecisionChoice(config.bf16, how)
     meta["train"]["bf16"] = config.bf16
+    meta["precision"] = choice.as_dict() if choice else None
+    if main_proc:
+        print(f"{cfg.name}: {choice.summary()}", file=sys.stderr)
     train_model = nn.parallel.DistributedDataParallel(model) if ddp else model
-    autocast = (lambda: torch.autocast(device.split(":")[0], dtype=torch.bfloat16)) if config.bf16 else nullcontext
-    local_batch = cfg.batch_size // world
+    autocast = autocast_for(device, config.bf16)
 
     writer = None
     if main_proc:
@@ -331,10 +365,23 @@ def train(config: TrainConfig) -> Path:
     loss_v = float("nan")
     train_model.train()
     params = list(model.parameters())
+    # wall time of each part of the loop (on CUDA the step is asynchronous: its time lands where the host
+    # next waits, in logging or validation, so these shares are exact on a CPU only)
+    parts = dict.fromkeys(("sample", "step", "log", "validate", "checkpoint"), 0.0)
+    clock = time.perf_counter()
+
+    def lap(part: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        parts[part] += now - clock
+        clock = now
+
     while step < end:
         batch = ds.sample(local_batch, gen)
+        lap("sample")
         loss, metrics = train_step(train_model, params, batch, optimizer, scheduler, config.grad_clip, autocast)
         step += 1
+        lap("step")
 
         if main_proc and (step % config.log_every == 0 or step == end):
             loss_v = loss.item()
@@ -346,15 +393,18 @@ def train(config: TrainConfig) -> Path:
                 bar.set_postfix(loss=f"{loss_v:.4f}", lr=f"{lr:.2e}", refresh=False)
         if bar is not None:
             bar.update(1)
+        lap("log")
         if main_proc and val_ds is not None and (step % config.val_every == 0 or step == config.iters):
             last_val = evaluate_loss(model, val_ds, autocast)
             for k, v in last_val.items():
                 writer.add_scalar(f"val/{k}", v, step)
-            if last_val["bc"] < best_val:  # select on the held-out *action* loss, never on test success
-                best_val = last_val["bc"]
+            if last_val[SELECT_ON] < best_val:  # held-out action error at inference, never test success
+                best_val = last_val[SELECT_ON]
                 save_checkpoint(run_dir / "best", model, {**meta, "step": step, "val": last_val})
+            lap("validate")
         if step % config.ckpt_every == 0 or step == end:
             checkpoint(step, last_val)
+            lap("checkpoint")
 
     if bar is not None:
         bar.close()
@@ -362,9 +412,14 @@ def train(config: TrainConfig) -> Path:
         writer.close()
         secs = time.perf_counter() - t0
         done = step - start_step
-        val_txt = f", val action loss {last_val['bc']:.4f} (best {best_val:.4f})" if last_val else ""
+        overhead = 1 - parts["step"] / secs if secs > 0 else 0.0
+        _append_timing(run_dir, {"from_step": start_step, "to_step": step, "wall_s": round(secs, 3),
+                                 "parts_s": {k: round(v, 3) for k, v in parts.items()},
+                                 "overhead_share": round(overhead, 4), "bf16": config.bf16,
+                                 "device": device, "threads": torch.get_num_threads()})
+        val_txt = f", val action error {last_val[SELECT_ON]:.4f} (best {best_val:.4f})" if last_val else ""
         print(f"{cfg.name}: {step}/{config.iters} iters ({done} in {secs:.1f} s, {1000 * secs / max(done, 1):.1f} "
-              f"ms/iter), loss {loss_v:.4f}{val_txt} -> {run_dir}")
+              f"ms/iter, {100 * overhead:.1f}% outside the step), loss {loss_v:.4f}{val_txt} -> {run_dir}")
     if ddp:
         dist.barrier()
     return run_dir
