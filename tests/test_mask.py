@@ -146,3 +146,55 @@ def test_padding_is_invisible_and_finite():
     lay = gpt.layout
     real = (lay.step < 0) | (lay.step >= 2)
     assert torch.equal(x0[0, real], x1[0, real])
+
+
+def _per_position_predictions(model, batch):
+    """(B, T, n) everything the action heads output for each window index in training (random mask drawn)."""
+    x, _ = model._features(batch, train=True)
+    cfg, valid = model.cfg, batch["valid"]
+    if cfg.action_head == "mse":
+        return model.action_decoder(model._select(x, cfg.centre_from, valid))
+    return torch.cat([model.centre_head(model._select(x, cfg.centre_from, valid)),
+                      model.offset_head(model._select(x, cfg.offset_from, valid))], dim=-1)
+
+
+def _leaks(name: str) -> list[tuple[int, int, str]]:
+    """(i, j, what) for every change of a(j) or s(j+1), j >= i, that changes a training prediction at index i."""
+    from cotpc.policies import make_model
+
+    cfg = get_preset(name, context=T, d_model=32, n_heads=4, n_layers=3, n_centres=4)
+    torch.manual_seed(0)
+    model = make_model(cfg, Q, P, max_timestep=50).train()
+    with torch.no_grad():
+        for prm in model.parameters():  # non-zero everywhere so every connection carries signal
+            prm.normal_(std=0.3)
+    g = torch.Generator().manual_seed(2)
+    B = 2
+    batch = {"states": torch.randn(B, T, Q, generator=g), "actions": torch.randn(B, T, P, generator=g),
+             "timesteps": torch.arange(T)[None].repeat(B, 1), "valid": torch.ones(B, T, dtype=torch.bool),
+             "cot": torch.zeros(B, T, 2 * Q), "cot_hide": torch.zeros(B, dtype=torch.long)}  # l = 0: mask hides nothing
+    with torch.no_grad():
+        base = _per_position_predictions(model, batch)
+        found = []
+        for j in range(T):
+            for key, idx, what in (("actions", j, "a"), ("states", j + 1, "s")):
+                if idx >= T:
+                    continue
+                other = {**batch, key: batch[key].clone()}
+                other[key][:, idx] += 1.0
+                moved = (_per_position_predictions(model, other) - base).abs().amax(dim=(0, 2)) > 1e-6
+                found += [(i, j, f"{what}({idx})") for i in range(j + 1) if moved[i]]
+    return found
+
+
+@pytest.mark.parametrize("name", [n for n, c in __import__("cotpc.policies", fromlist=["PRESETS"]).PRESETS.items()
+                                  if c.leak_free and c.arch == "transformer"])
+def test_leak_free_presets_never_see_their_targets(name):
+    """For every preset that claims it: a(j) or s(j+1), j >= i, never changes the prediction at index i."""
+    assert _leaks(name) == []
+
+
+def test_the_papers_hybrid_mask_leaks_targets_in_training():
+    """The check above has teeth: with the paper's mask, CoT tokens carry a(i) into the predictions at i."""
+    leaks = _leaks("cotpc")
+    assert any(i == j for i, j, _ in leaks) and any(what.startswith("s") for _, _, what in leaks)

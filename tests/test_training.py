@@ -121,3 +121,27 @@ def test_inference_metrics_score_what_select_action_outputs():
         m = model.eval().inference_metrics(batch)
         want = ((model.predict(batch) - batch["actions"][:, -1]) ** 2).mean()
         torch.testing.assert_close(m["action_err"], want)
+
+
+def test_timestep_embeddings_cover_training_and_clamp_beyond(data, tmp_path):
+    from cotpc.data import load_trajectories
+
+    run = train(TrainConfig(data=data, out=tmp_path / "run", iters=4, **TINY))
+    longest = max(ep.num_steps for ep in load_trajectories(data).episodes)
+    assert json.loads((run / "config.json").read_text())["max_timestep"] == longest  # a row per trained step
+    model = load_policy(run).model
+    g = torch.Generator().manual_seed(0)
+    s, a = torch.randn(2, 4, 6, generator=g), torch.randn(2, 3, 2, generator=g)
+    at_last = model.gpt(s, a, torch.full((2, 4), longest - 1))[0]
+    beyond = model.gpt(s, a, torch.arange(4)[None].repeat(2, 1) + 5 * longest)[0]
+    torch.testing.assert_close(beyond, at_last)  # steps past the longest demo read its last (trained) row
+
+
+def test_gradient_shares_of_the_loss_terms_are_logged(data, tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    run = train(TrainConfig(data=data, out=tmp_path / "run", iters=10, **TINY))
+    acc = EventAccumulator(str(run / "tb"))
+    acc.Reload()
+    shares = {k: acc.Scalars(f"grad/{k}_share")[-1].value for k in ("ce", "offset", "cot")}
+    assert abs(sum(shares.values()) - 1) < 1e-5 and all(v > 0 for v in shares.values())

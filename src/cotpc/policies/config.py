@@ -41,6 +41,10 @@ class PolicyConfig:
     """CoT prompt tokens: 0 = none (DT/BeT), -1 = one per timestep (T, CoTPC), or an explicit count."""
     random_cot_mask: bool = True
     """In training, hide a random suffix of the window from the CoT tokens (paper Sec. 4.2.3)."""
+    cot_attention: Literal["hybrid", "causal"] = "hybrid"
+    """``hybrid``: the paper's CoT tokens, all-to-all (in training they see the targets of earlier window
+    positions: docs/policies.md); ``causal``: CoT token i sits at window index i and sees only what is known
+    there, like every other token, so no prediction in training sees its target (leak-free)."""
 
     # --- heads and losses ---
     action_head: Literal["mse", "bet"] = "bet"
@@ -85,6 +89,11 @@ class PolicyConfig:
         return self.context if self.n_cot == -1 else self.n_cot
 
     @property
+    def leak_free(self) -> bool:
+        """True if no training prediction of window index i can see a(>=i) or s(>i) (tested)."""
+        return self.arch == "mlp" or self.n_cot_tokens == 0 or self.cot_attention == "causal"
+
+    @property
     def window(self) -> int:
         """Timesteps per training window (1 for the Markovian MLP)."""
         return 1 if self.arch == "mlp" else self.context
@@ -118,6 +127,8 @@ class PolicyConfig:
             raise ValueError(f"n_cot must be 0, 1 or the context size, got {n_cot}")
         if not -self.n_layers <= self.cot_layer < self.n_layers:
             raise ValueError(f"cot_layer={self.cot_layer} out of range for {self.n_layers} layers")
+        if self.cot_attention == "causal" and self.random_cot_mask and n_cot:
+            raise ValueError("causal CoT attention already hides the future; it takes no random CoT mask")
         if self.decoupled and self.cot_targets != ("next", "last"):
             raise ValueError("decoupled predicts the next and last subskill states")
 
@@ -136,6 +147,8 @@ PRESETS: dict[str, PolicyConfig] = {
     "bet": PolicyConfig(name="bet", action_head="bet"),
     # The method.
     "cotpc": _COTPC,
+    # The method without the hybrid mask's target leak: CoT token i sees only what is known at window index i.
+    "cotpc-causal": dataclasses.replace(_COTPC, name="cotpc-causal", cot_attention="causal", random_cot_mask=False),
     # Ablations (paper Table 4), all configurations of the CoTPC model.
     "only-last": dataclasses.replace(_COTPC, name="only-last", cot_targets=("last",)),
     "only-next": dataclasses.replace(_COTPC, name="only-next", cot_targets=("next",)),

@@ -11,6 +11,9 @@ t-T+1+i. Who may attend to whom is decided by :func:`build_mask` from this layou
 - state/action tokens are causal (an earlier or the same token) and see all CoT tokens;
 - training only: CoT tokens do not see state/action tokens of window index i > T-1-l (timesteps t' > t-l),
   with l drawn per sample;
+- or, with ``causal_cot`` (the leak-free design), CoT token j sits at window index j: every token has a time
+  (s(i) and cot_i: 2i, a(i): 2i + 1) and sees exactly the tokens of an earlier or equal time, so what predicts
+  the action of index i never saw a(>=i) or s(>i), through any number of blocks (no random mask needed);
 - windows that start before the episode are left-padded; padded tokens are hidden from everyone (each token
   still sees itself, so no softmax row is empty and nothing turns NaN).
 
@@ -41,8 +44,8 @@ def mlp(sizes: list[int], act: type[nn.Module] = nn.ReLU) -> nn.Sequential:
 class Layout:
     """Token positions of a window: which token is a CoT, state or action token, and its window index."""
 
-    def __init__(self, context: int, n_cot: int, use_actions: bool):
-        self.T, self.C, self.use_actions = context, n_cot, use_actions
+    def __init__(self, context: int, n_cot: int, use_actions: bool, causal_cot: bool = False):
+        self.T, self.C, self.use_actions, self.causal_cot = context, n_cot, use_actions, causal_cot
         T, C = context, n_cot
         stride = 2 if use_actions else 1
         self.state_pos = torch.arange(T) * stride + C  # token index of s(i)
@@ -56,6 +59,14 @@ class Layout:
             kind[self.action_pos] = 2
             step[self.action_pos] = torch.arange(T - 1)
         self.kind, self.step = kind, step
+        # time order of the causal-CoT design: s(i) and cot_i at i * stride, a(i) right after s(i); a single CoT
+        # token (vanilla) sits at the last index
+        time = torch.zeros(self.length, dtype=torch.long)
+        time[self.state_pos] = torch.arange(T) * stride
+        if use_actions:
+            time[self.action_pos] = torch.arange(T - 1) * 2 + 1
+        time[:C] = (torch.arange(C) + T - C) * stride
+        self.time = time
 
 
 def build_mask(layout: Layout, valid: torch.Tensor | None = None, cot_hide: torch.Tensor | None = None) -> torch.Tensor:
@@ -69,8 +80,10 @@ def build_mask(layout: Layout, valid: torch.Tensor | None = None, cot_hide: torc
     L, T = layout.length, layout.T
     is_cot = layout.kind == 0
     pos = torch.arange(L)
-    # causal among state/action tokens, and everyone sees the CoT tokens; CoT tokens see everything
-    mask = (pos[None, :] <= pos[:, None]) | is_cot[None, :] | is_cot[:, None]
+    if layout.causal_cot:  # every token sees the tokens of an earlier or equal time; nothing to hide at random
+        mask, cot_hide = layout.time[None, :] <= layout.time[:, None], None
+    else:  # causal among state/action tokens, and everyone sees the CoT tokens; CoT tokens see everything
+        mask = (pos[None, :] <= pos[:, None]) | is_cot[None, :] | is_cot[:, None]
     if valid is None and cot_hide is None:
         return mask
     B = (valid if valid is not None else cot_hide).shape[0]
@@ -176,7 +189,7 @@ class GPT(nn.Module):
         super().__init__()
         d = cfg.d_model
         self.cfg, self.max_timestep = cfg, max_timestep
-        self.layout = Layout(cfg.context, n_cot, cfg.use_actions)
+        self.layout = Layout(cfg.context, n_cot, cfg.use_actions, causal_cot=cfg.cot_attention == "causal")
         self.state_enc = mlp([state_dim, cfg.hidden, d])
         self.action_enc = mlp([action_dim, cfg.hidden, d]) if cfg.use_actions else None
         self.cot_tokens = nn.Parameter(torch.zeros(n_cot, d)) if n_cot else None  # no positional embedding

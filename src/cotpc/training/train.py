@@ -161,6 +161,26 @@ def evaluate_loss(model: nn.Module, ds: WindowDataset, autocast, chunk: int = 10
     return {k: v / len(ds) for k, v in sums.items()}
 
 
+def loss_gradient_shares(model: nn.Module, batch: dict, autocast) -> dict[str, float]:
+    """Gradient norm of each weighted loss term on the shared transformer (the trunk), and its share of their
+    sum: whether the CoT loss reaches the trunk at all next to the BC terms. Logged at validation time."""
+    gpt = getattr(model, "gpt", None)
+    if gpt is None:  # the MLP has no trunk shared between terms
+        return {}
+    cfg = model.cfg
+    trunk = [p for p in gpt.blocks.parameters() if p.requires_grad]
+    with autocast():
+        _, m = model.loss(batch)
+    weights = {"ce": 1.0, "offset": cfg.offset_weight, "cot": cfg.cot_weight, "mse": 1.0}
+    terms = {k: weights[k] * m[k] for k in weights if k in m}
+    norms = {}
+    for i, (k, term) in enumerate(terms.items()):
+        grads = torch.autograd.grad(term, trunk, retain_graph=i < len(terms) - 1, allow_unused=True)
+        norms[k] = float(torch.sqrt(sum((g.float() ** 2).sum() for g in grads if g is not None)))
+    total = sum(norms.values()) or 1.0
+    return {**{f"{k}_norm": v for k, v in norms.items()}, **{f"{k}_share": v / total for k, v in norms.items()}}
+
+
 def probe_precision(model: nn.Module, cfg, ds: WindowDataset, batch_size: int, device: str, grad_clip: float):
     """:func:`choose_precision` on copies of the model and a fresh optimiser, with fixed batches drawn from a
     generator of its own; the global RNG (dropout) is restored after, so the run is the same as with an
@@ -268,7 +288,10 @@ def train(config: TrainConfig) -> Path:
     val_ds = WindowDataset(trajs, val_eps, cfg.window, stats, cfg.cot_targets, config.seed + 1, device, where) \
         if len(val_eps) else None
     q, p = trajs.obs_dim, trajs.action_dim
-    max_timestep = max(int(trajs.env_info.get("max_episode_steps") or 0), max(ep.num_steps + 1 for ep in trajs.episodes))
+    # One timestep-embedding row per step seen in training (states 0..N-1 of the longest demo): every row gets
+    # a gradient, and a rollout that runs past the longest demo reads the last trained row (GPT clamps), never
+    # an untrained one (ManiSkill rollouts run to 200 steps, Stack Cube demos ~108).
+    max_timestep = max(ep.num_steps for ep in trajs.episodes)
 
     # --- model (identical on every rank: same seed; DDP also broadcasts rank 0's) ---
     torch.manual_seed(config.seed)
@@ -398,6 +421,8 @@ def train(config: TrainConfig) -> Path:
             last_val = evaluate_loss(model, val_ds, autocast)
             for k, v in last_val.items():
                 writer.add_scalar(f"val/{k}", v, step)
+            for k, v in loss_gradient_shares(model, batch, autocast).items():
+                writer.add_scalar(f"grad/{k}", v, step)
             if last_val[SELECT_ON] < best_val:  # held-out action error at inference, never test success
                 best_val = last_val[SELECT_ON]
                 save_checkpoint(run_dir / "best", model, {**meta, "step": step, "val": last_val})
