@@ -161,6 +161,6 @@ def test_precision_probe_is_stored_and_leaves_the_run_unchanged(tmp_path):
     a, b = load_file(str(probed / "model.safetensors")), load_file(str(told / "model.safetensors"))
     for k in a:
         assert torch.equal(a[k], b[k]), k
-    timing = json.loads((probed / "timing.json").read_text())
+    timing = json.loads((probed / "loop_timing.json").read_text())
     assert len(timing) == 1 and timing[0]["to_step"] == 6 and 0 <= timing[0]["overhead_share"] < 1
     assert set(timing[0]["parts_s"]) == {"sample", "step", "log", "validate", "checkpoint"}

@@ -145,3 +145,22 @@ def test_gradient_shares_of_the_loss_terms_are_logged(data, tmp_path):
     acc.Reload()
     shares = {k: acc.Scalars(f"grad/{k}_share")[-1].value for k in ("ce", "offset", "cot")}
     assert abs(sum(shares.values()) - 1) < 1e-5 and all(v > 0 for v in shares.values())
+
+
+def test_validation_metrics_of_one_pass_equal_the_separate_computations():
+    from test_policies import P, Q, build
+
+    trajs = synthetic_trajectories(n_episodes=8, obs_dim=Q, action_dim=P, length=20, seed=0)
+    for name in ("cotpc", "cotpc-causal", "swapped", "decoupled", "dt", "bc"):
+        model, ds = build(name, trajs)
+        batch = ds.windows(torch.arange(0, 40))
+        all_pos, last = model.eval().validation_metrics(batch)
+        want_last = model.inference_metrics(batch)
+        assert last.keys() == want_last.keys()
+        for k in last:
+            torch.testing.assert_close(last[k], want_last[k], msg=f"{name} {k}")
+        if name != "bc":
+            model.cfg = model.cfg.replace(random_cot_mask=False)  # the training loss without its random mask
+        want_all = model.loss(batch)[1]
+        for k in want_all:
+            torch.testing.assert_close(all_pos[k], want_all[k], msg=f"{name} {k}")

@@ -22,9 +22,8 @@ class RowGatheredLinear(torch.autograd.Function):
     """``linear(x, weight, bias).view(N, K, p)[arange(N), rows]`` without computing the other K - 1 groups.
 
     x (N, h), weight (K * p, h), bias (K * p,), rows (N,) long in [0, K) -> (N, p), in fp32. The backward scatters
-    into the groups used (``index_add_``). Measured on a 2-core CPU, forward + backward (docs/performance.md):
-    16 ms against 54 ms for the dense layer at the ManiSkill shape (K = 128, p = 8), 10 against 203 ms at the
-    maze shape (K = 1024, p = 2).
+    into the groups used (``index_add_``). The dense layer is K x p x h multiply-adds per token, most of the
+    offset head's cost, and only p of its K x p outputs reach the loss (K = 1024 in the maze).
     """
 
     @staticmethod
@@ -171,9 +170,24 @@ class TransformerPolicy(nn.Module):
         return self.loss(batch)
 
     def loss(self, batch: dict) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """The training loss (random CoT mask drawn per sample) and its terms, averaged over window positions."""
+        x, cot_pred = self._features(batch, train=True)
+        return self._loss_terms(x, cot_pred, batch)
+
+    @torch.no_grad()
+    def validation_metrics(self, batch: dict) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """One pass without the random mask: (loss terms over all window positions, the metrics of
+        :meth:`inference_metrics` at the last position, read from the same features)."""
+        cfg = self.cfg
+        x, cot_pred = self._features(batch, train=False)
+        _, all_positions = self._loss_terms(x, cot_pred, batch)
+        srcs = {cfg.centre_from, cfg.offset_from}
+        feats = {src: self._select(x, src, batch.get("valid"))[:, -1] for src in srcs}
+        return all_positions, self._last_metrics(feats, batch, cot_pred[:, -1] if cot_pred is not None else None)
+
+    def _loss_terms(self, x, cot_pred, batch: dict) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         cfg = self.cfg
         valid = batch["valid"]
-        x, cot_pred = self._features(batch, train=True)
         target = batch["actions"]  # normalised
         metrics = {}
         if cfg.action_head == "mse":
@@ -233,8 +247,14 @@ class TransformerPolicy(nn.Module):
         ``action_err``: MSE of the predicted (normalised) action, the arg-max centre plus its offset;
         ``ce`` / ``centre_acc`` / ``offset``: the centre classifier and the true centre's offset; ``cot``: the
         CoT prediction of the last window index; ``bc``: the BC loss terms at that index."""
+        cot_last = None
+        if self.cot_head is not None:
+            _, cot_pred = self._features(batch, train=False)
+            cot_last = cot_pred[:, -1]
+        return self._last_metrics(self._last_features(batch), batch, cot_last)
+
+    def _last_metrics(self, feats: dict, batch: dict, cot_last: torch.Tensor | None) -> dict[str, torch.Tensor]:
         cfg = self.cfg
-        feats = self._last_features(batch)
         target = batch["actions"][:, -1]
         out: dict[str, torch.Tensor] = {}
         if cfg.action_head == "mse":
@@ -248,11 +268,11 @@ class TransformerPolicy(nn.Module):
             out["centre_acc"] = (logits.argmax(-1) == true_c).float().mean()
             out["offset"] = ((off - (target - self.centres[true_c])) ** 2).mean()
             out["bc"] = out["ce"] + cfg.offset_weight * out["offset"]
-            pred = self.predict(batch)
+            c = logits.argmax(-1)  # what predict() outputs, from the same features
+            pred = self.centres[c] + self._true_centre_offsets(feats[cfg.offset_from][:, None], c[:, None])[:, 0].float()
         out["action_err"] = ((pred - target) ** 2).mean()
-        if self.cot_head is not None:
-            _, cot_pred = self._features(batch, train=False)
-            out["cot"] = ((cot_pred[:, -1].float() - batch["cot"][:, -1]) ** 2).mean()
+        if cot_last is not None:
+            out["cot"] = ((cot_last.float() - batch["cot"][:, -1]) ** 2).mean()
         return out
 
     def predict(self, batch: dict) -> torch.Tensor:
@@ -291,6 +311,10 @@ class MLPPolicy(nn.Module):
         """As :meth:`TransformerPolicy.inference_metrics`; Markovian, so the same as its loss."""
         err = ((self.predict(batch) - batch["actions"][:, -1]) ** 2).mean()
         return {"bc": err, "action_err": err}
+
+    @torch.no_grad()
+    def validation_metrics(self, batch: dict) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        return self.loss(batch)[1], self.inference_metrics(batch)
 
 
 def _init_weights(m: nn.Module) -> None:

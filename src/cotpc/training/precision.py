@@ -1,7 +1,8 @@
 """Choosing bf16 or fp32 by timing the real training step, and the alternating timer it uses.
 
 Machines of one kind differ: on a CPU with AMX-BF16 a bf16 matmul is ~7x an fp32 one, on a CPU with only
-AVX512-BF16 it is ~0.5x, and on one without bf16 instructions ~1/100 (emulated). A lone matmul says little about
+AVX512-BF16 it is ~0.5x, and on one without bf16 instructions far slower (emulated; `cotpc bench train`
+prints both matmul peaks). A lone matmul says little about
 the whole step (attention, GELU, LayerNorm, copies and the optimiser do not speed up alike), so the decision times
 the step itself: the model being trained, at its batch size, in both precisions, alternating, fastest of a few
 rounds (a busy machine only ever slows a round down, so the minimum is the fair figure).
@@ -102,7 +103,7 @@ def choose_precision(make_step: Callable[[bool, int], Callable[[], object]], bat
     ``make_step(bf16, batch)`` returns a function doing one training step of the real model (on a copy, so the
     run itself is untouched) in that precision at that batch size. The step is first raced at ``small_batch``:
     where bf16 is emulated it is already several times slower there, and one full-batch bf16 step would take
-    seconds to minutes (measured: 12 s against 0.8 s on an AVX2 EPYC), so the full-batch race is skipped.
+    many seconds (an AVX2-only CPU emulates bf16 matmuls), so the full-batch race is skipped.
     On CUDA bf16 is used where the device supports it (tensor cores), without timing.
     """
     if device.startswith("cuda"):

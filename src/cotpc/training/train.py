@@ -7,7 +7,7 @@ NCCL on GPU). The global batch is split across processes; rank 0 validates, logs
 A run directory holds the latest checkpoint (``config.json`` + ``model.safetensors``), ``training_state.pt``
 (model, optimiser, scheduler, RNG states, step: everything ``--resume`` needs), ``best/`` (the checkpoint with
 the lowest validation action error at the last window position, as at inference, on held-out demos of the
-training file), ``timing.json`` (wall time of each part of the loop) and ``tb/`` (TensorBoard).
+training file), ``loop_timing.json`` (wall time of each part of the loop) and ``tb/`` (TensorBoard).
 """
 
 from __future__ import annotations
@@ -152,8 +152,7 @@ def evaluate_loss(model: nn.Module, ds: WindowDataset, autocast, chunk: int = 10
         ends = torch.arange(start, min(start + chunk, len(ds)), device=ds.device)
         batch = ds.windows(ends)
         with autocast():
-            _, metrics = model.loss(batch)
-            last = model.inference_metrics(batch)
+            metrics, last = model.validation_metrics(batch)
         for prefix, group in (("all_", metrics), ("last_", last)):
             for k, v in group.items():
                 sums[prefix + k] = sums.get(prefix + k, 0.0) + float(v) * len(ends)
@@ -238,9 +237,9 @@ def _set_rng_state(gen: torch.Generator, s: dict) -> None:
 
 
 def _append_timing(run_dir: Path, segment: dict) -> None:
-    """timing.json: one entry per training session of the run (a resumed run adds one), so the wall time of
+    """loop_timing.json: one entry per training session of the run (a resumed run adds one), so the wall time of
     each part of the loop, and how a run was spread over sessions, can be read back."""
-    path = run_dir / "timing.json"
+    path = run_dir / "loop_timing.json"
     segments = json.loads(path.read_text()) if path.exists() else []
     path.write_text(json.dumps(segments + [segment], indent=1))
 
