@@ -8,9 +8,9 @@ from typing import Literal, Optional
 
 import tyro
 
-# --quick: the README's main command; must finish within 15 minutes on a 2-core CPU.
-# On our 2-core CPU a CoTPC iteration at the paper's batch 256 (context 20) takes ~0.75 s, so --quick trains with
-# batch 64 for 1500 iterations (~5 min per policy): a first look, not the paper's 200K-iteration schedule.
+# --quick: the README's main command. A CoTPC iteration at the paper's batch 256 (context 20) takes 0.75 s on a
+# 2-core Xeon and 1.5 s on a 2-core AVX2 EPYC (docs/performance.md), so --quick trains with batch 64 for 1500
+# iterations (5-16 min per policy): a first look, not the paper's 200K-iteration schedule.
 # The short schedule. 128 k-means centres instead of the paper's 1024: with 1500 iterations the 1024-way centre
 # classifier is far from trained; 128 was chosen on the validation configs (docs/results/maze.md).
 QUICK = {"iters": 1500, "seeds": 1, "policies": ("bet", "cotpc"), "ablations": (), "batch_size": 64, "n_centres": 128}
