@@ -237,7 +237,7 @@ class GPT(nn.Module):
             mask, bias = self.base_mask, self.base_bias
         else:
             mask = build_mask(lay, valid, cot_hide if lay.C else None)
-            bias = mask_to_bias(mask)
+            bias = mask_to_bias(mask) if mask.device.type != "cuda" else None  # CUDA: SDPA takes the mask
         kept = None
         last = len(self.blocks) - 1
         for j, block in enumerate(self.blocks):
