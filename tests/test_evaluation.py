@@ -7,6 +7,7 @@ import pytest
 
 from cotpc.cli.main import main as cotpc_main
 from cotpc.data import load_trajectories
+from cotpc.envs.moving_maze import RULES
 from cotpc.evaluation.maze import (
     RandomPolicy,
     ReplayPolicy,
@@ -89,10 +90,16 @@ def test_wilson_interval():
 
 
 def test_demos_also_succeed_when_gaps_are_deadly(demo_dir):
-    # The demonstrator never steps into a gap, so the rule changes nothing for it...
+    # The demonstrator never steps into a gap, so the rule changes nothing for it: every demo replays to success
+    # under the defaults (the paper's rules), and under each forgiving reading...
     data = load_trajectories(demo_dir / "train.h5")
-    result = evaluate(ReplayPolicy([ep.actions for ep in data.episodes]), demo_dir, "seen", deadly_gaps=True)
+    result = evaluate(ReplayPolicy([ep.actions for ep in data.episodes]), demo_dir, "seen")
     assert result.success_rate == 1.0 and result.meta["fell"] == 0
+    assert (result.meta["deadly_gaps"], result.meta["min_action"]) == (True, 1.5)
+    for rules in RULES.values():
+        result = evaluate(ReplayPolicy([ep.actions for ep in data.episodes]), demo_dir, "seen",
+                          deadly_gaps=rules.deadly_gaps, min_action=rules.min_action)
+        assert result.success_rate == 1.0, rules
     # ...while a random walker falls.
     result = evaluate(RandomPolicy(seed=0), demo_dir, "seen", deadly_gaps=True)
     assert result.meta["fell"] > 0
@@ -119,10 +126,13 @@ def test_eval_cli_on_a_trained_run(demo_dir, tmp_path, capsys):
     assert all(e["seed"] >= 2_000_000 for e in saved["episodes"])  # the test configs
     assert len(list((tmp_path / "v").glob("*.gif"))) == 1
     assert "success" in capsys.readouterr().out
-    cotpc_main(["eval", str(run), "--split", "seen", "--deadly-gaps", "--episodes", "2"])
-    assert json.loads((run / "eval_seen_deadly_gaps.json").read_text())["summary"]["deadly_gaps"] is True
-    cotpc_main(["eval", str(run), "--split", "seen", "--min-action", "1.5", "--episodes", "2"])
-    assert json.loads((run / "eval_seen_min_action1.5.json").read_text())["summary"]["min_action"] == 1.5
+    assert (saved["summary"]["deadly_gaps"], saved["summary"]["min_action"]) == (True, 1.5)  # the paper's rules
+    cotpc_main(["eval", str(run), "--split", "seen", "--rules", "forgiving", "--episodes", "2"])
+    saved = json.loads((run / "eval_seen_forgiving.json").read_text())["summary"]
+    assert (saved["deadly_gaps"], saved["min_action"]) == (False, 0.0)
+    cotpc_main(["eval", str(run), "--split", "seen", "--rules", "any-action", "--episodes", "2"])
+    saved = json.loads((run / "eval_seen_any-action.json").read_text())["summary"]
+    assert (saved["deadly_gaps"], saved["min_action"]) == (True, 0.0)
     cotpc_main(["eval", str(run), "--split", "val"])
     saved = json.loads((run / "eval_val.json").read_text())
     assert saved["summary"]["episodes"] == 5 and all(1_000_000 <= e["seed"] < 2_000_000 for e in saved["episodes"])

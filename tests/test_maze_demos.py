@@ -130,7 +130,7 @@ def test_demos_for_the_moved_landing_rule(tmp_path):
     cotpc_main(["demos", "maze", "--out", str(tmp_path), "--train", "12", "--test", "0", "--val", "0",
                 "--landing", "moved"])
     data = load_trajectories(tmp_path / "train.h5")
-    assert data.env_info["env_kwargs"] == {"landing": "moved"}
+    assert data.env_info["env_kwargs"] == {"landing": "moved", "deadly_gaps": True, "min_action": 1.5}
     # evaluation reads the rule from the file: every demo replays to success under it...
     replay = ReplayPolicy([ep.actions for ep in data.episodes])
     assert evaluate(replay, tmp_path, "seen").success_rate == 1.0

@@ -10,7 +10,10 @@ from cotpc.envs.moving_maze import (
     HORIZON,
     MOVING_RANGES,
     SEED_RANGES,
+    PAPER_MIN_ACTION,
+    RULES,
     MazeConfig,
+    MazeRules,
     MovingMazeBatch,
     check_seed,
     region_of,
@@ -18,6 +21,11 @@ from cotpc.envs.moving_maze import (
     seeds_for,
     split_of_seed,
 )
+
+
+# The mechanics tests below move by small steps and into gaps, which the paper's rules (the default) raise or
+# punish: they run under the forgiving rules unless they test a rule.
+FORGIVING = dict(deadly_gaps=False, min_action=0.0)
 
 
 def make_config(**overrides) -> MazeConfig:
@@ -42,8 +50,21 @@ def test_registered_and_spaces():
     assert info["success"] is False
 
 
+def test_the_paper_rules_are_the_default():
+    # "both components in [1.5, 4]" and "cannot cross the borders of the maze (but will not die from doing so)":
+    # a border is safe, a gap is not.
+    assert MazeRules() == RULES["paper"] == MazeRules(deadly_gaps=True, min_action=PAPER_MIN_ACTION)
+    env = gym.make(MAZE_ENV_ID).unwrapped
+    assert (env.deadly_gaps, env.min_action) == (True, 1.5)
+    batch = MovingMazeBatch([make_config()])
+    assert (batch.deadly_gaps, batch.min_action) == (True, 1.5)
+    assert RULES["forgiving"] == MazeRules(**FORGIVING)
+    assert [r.name for r in RULES.values()] == list(RULES)
+    assert MazeRules(True, 2.0).name == "deadly-gaps-min-action2"
+
+
 def test_border_blocks_the_move_without_ending_the_episode():
-    env = MovingMazeBatch([make_config(agent_start=(59.0, 70.0))])
+    env = MovingMazeBatch([make_config(agent_start=(59.0, 70.0))], **FORGIVING)
     obs, success, done = env.step([[3.0, 0.0]])  # would end at x=62, outside the maze
     np.testing.assert_allclose(obs[0, :2], [59.0, 70.0])
     assert not done[0]
@@ -54,7 +75,7 @@ def test_border_blocks_the_move_without_ending_the_episode():
 def test_gap_blocks_the_move_unless_a_bridge_is_there():
     # Agent on the top island just above the gap; bridge 1 far to the left (x in [5, 15]).
     cfg = make_config(agent_start=(55.0, 61.0), start_y=64.0, bridge1_x=10.0)
-    env = MovingMazeBatch([cfg])
+    env = MovingMazeBatch([cfg], **FORGIVING)
     env.agent[0] = (40.0, 61.0)
     obs, _, _ = env.step([[0.0, -3.0]])  # y=58 above the middle of the gap, no bridge at x=40
     np.testing.assert_allclose(obs[0, :2], [40.0, 61.0])
@@ -84,7 +105,7 @@ def test_block_freezes_once_landed_and_moves_before():
 
 def test_speeds_and_ranges_bounce_inside_the_range():
     configs = [sample_config(np.random.default_rng(s)) for s in range(50)]
-    env = MovingMazeBatch(configs, horizon=10_000)
+    env = MovingMazeBatch(configs, horizon=10_000, **FORGIVING)
     env.agent[:] = (55.0, 70.0)  # parked on the start square: never touches a moving block
     previous = env.moving.copy()
     speeds = np.abs(env.velocity).copy()
@@ -251,8 +272,8 @@ def test_min_action_rule_raises_small_components_keeping_their_sign():
     obs, _, _ = env.step(actions)
     np.testing.assert_allclose(obs[:, :2] - [30.0, 70.0], [[1.5, -1.5], [1.5, 1.5], [-3.0, 2.5], [-4.0, 1.5]])
     assert (env.raised_components, env.active_components) == (5, 8)
-    # The default rule moves by the (clipped) action itself: the agent can creep or stand still.
-    env = MovingMazeBatch([make_config(agent_start=(30.0, 70.0))] * 4)
+    # The forgiving rule moves by the (clipped) action itself: the agent can creep or stand still.
+    env = MovingMazeBatch([make_config(agent_start=(30.0, 70.0))] * 4, **FORGIVING)
     obs, _, _ = env.step(actions)
     np.testing.assert_allclose(obs[:, :2] - [30.0, 70.0], [[0.1, -0.2], [0.0, 0.0], [-3.0, 2.5], [-4.0, 0.5]], atol=1e-5)
     for bad in (-1.0, 4.5):
@@ -270,12 +291,12 @@ def test_landing_rule_moved_checks_where_the_blocks_will_be():
     # observed, but after the bridge has moved (x in [7, 17]) that point is in the gap.
     cfg = make_config(bridge1_x=10.0, velocities=(2.0, 1.5, 1.5))
     for landing, lands in (("observed", True), ("moved", False)):
-        env = MovingMazeBatch([cfg], landing=landing)
+        env = MovingMazeBatch([cfg], landing=landing, **FORGIVING)
         env.agent[0] = (6.0, 61.0)
         obs, _, _ = env.step([[0.0, -3.0]])
         assert (obs[0, 1] == 58.0) == lands, landing
     # Under "moved" the agent lands where the bridge will be, and the bridge stops there for good.
-    env = MovingMazeBatch([cfg], landing="moved")
+    env = MovingMazeBatch([cfg], landing="moved", **FORGIVING)
     env.agent[0] = (16.0, 61.0)  # beyond the observed bridge (x <= 15), within the moved one (x <= 17)
     obs, _, _ = env.step([[0.0, -3.0]])
     np.testing.assert_allclose(obs[0, :2], [16.0, 58.0])

@@ -20,20 +20,22 @@ def test_reproduce_runs_end_to_end_and_resumes(tmp_path, capsys):
             assert abs(r["mean"] * n / 100 - round(r["mean"] * n / 100)) < 1e-9
             episodes = json.loads((out / "runs" / name / "seed0" / f"eval_{split}.json").read_text())["episodes"]
             assert len(episodes) == n
-    # The same checkpoints are also evaluated under the stricter rules: deadly gaps and the paper's action range.
-    for key, n in (("unseen_deadly_gaps", 4), ("val_min_action1.5", 3), ("unseen_deadly_gaps_min_action1.5", 4)):
+    # The headline keys are the paper's rules (deadly gaps, actions in [1.5, 4]); the same checkpoints are also
+    # evaluated under the forgiving readings of them.
+    for key, n, deadly, min_action in (("unseen", 4, True, 1.5), ("unseen_forgiving", 4, False, 0.0),
+                                       ("val_any-action", 3, True, 0.0), ("unseen_safe-gaps", 4, False, 1.5)):
         summary = json.loads((out / "runs" / "cotpc" / "seed0" / f"eval_{key}.json").read_text())["summary"]
-        assert summary["episodes"] == n and summary["deadly_gaps"] == ("deadly" in key)
-        assert summary["min_action"] == (1.5 if "min_action" in key else 0.0)
+        assert summary["episodes"] == n and summary["deadly_gaps"] == deadly
+        assert summary["min_action"] == min_action
         assert results["cotpc"][key]["runs"] == [100 * summary["success_rate"]]
-        assert ("raised_share" in results["cotpc"][key]) == ("min_action" in key)
+        assert ("raised_share" in results["cotpc"][key]) == (min_action > 0)
     assert results["meta"]["ablations"] == ["vanilla"]
     assert results["meta"]["settings"]["iters"] == 6
     # --quick trains the BeT-style heads with 128 k-means centres (chosen on validation configs)
     assert json.loads((out / "runs" / "cotpc" / "seed0" / "config.json").read_text())["policy"]["n_centres"] == 128
     report = (out / "report.md").read_text()
     assert "| cotpc |" in report and "| vanilla |" in report and "| cotpc (full method, seed 0) |" in report
-    assert report.count("| cotpc |") == 2 and "The paper's action range" in report
+    assert report.count("| cotpc |") == 2 and "Forgiving readings of the rules" in report
     assert (out / "success.png").exists() and (out / "learning_curves.png").exists()
     assert list((out / "videos" / "cotpc").glob("*.gif"))
     printed = capsys.readouterr().out
@@ -80,7 +82,7 @@ def test_reproduce_parallel_jobs_and_checkpoint_curve(tmp_path):
     results = json.loads((parallel / "results.json").read_text())
     curve = results["meta"]["val_success_by_iteration"]["cotpc/seed0"]
     assert curve["iteration"] == list(range(1, 11))  # a checkpoint every tenth of the run
-    assert len(curve["val"]) == len(curve["val_deadly_gaps"]) == len(curve["val_deadly_gaps_min_action1.5"]) == 10
+    assert len(curve["val"]) == len(curve["val_forgiving"]) == 10
     assert all(0 <= v <= 100 and abs(v * 3 / 100 - round(v * 3 / 100)) < 1e-9 for v in curve["val"])
     assert (parallel / "val_success.png").exists() and "val_success.png" in (parallel / "report.md").read_text()
 

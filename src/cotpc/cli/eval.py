@@ -30,14 +30,14 @@ class EvalConfig:
     """Write GIFs of the first --num-videos rollouts (agent, blocks and path drawn) into this directory."""
     num_videos: int = 4
     """How many rollouts to record with --video."""
-    deadly_gaps: bool = False
-    """Gap rule: a step into a gap ends the episode as a failure (default: the step is blocked)."""
-    min_action: float = 0.0
-    """Action rule: raise each action component's magnitude to at least this, sign kept. 1.5 is the paper's
-    literal action range, "both components in [1.5, 4]": the agent cannot stand still or creep (default: 0, any
-    action up to 4 per component; docs/moving-maze.md)."""
+    rules: Literal["paper", "any-action", "safe-gaps", "forgiving"] = "paper"
+    """Moving Maze rules (docs/moving-maze.md): paper = a step into a gap ends the episode as a failure and each
+    action component's magnitude is raised to at least 1.5 ("both components in [1.5, 4]"); any-action = deadly
+    gaps, any action up to 4; safe-gaps = a step into a gap is blocked, actions in [1.5, 4]; forgiving = both
+    relaxed (this project's default before 2026-12)."""
     out: Optional[Path] = None
-    """Per-episode results as JSON (default: RUN/eval_<split>[_deadly_gaps][_min_action<x>].json)."""
+    """Per-episode results as JSON (default: RUN/eval_<split>.json under the paper's rules, else
+    RUN/eval_<split>_<rules>.json)."""
     device: str = "cpu"
     """Device for the policy."""
     horizon: Optional[int] = None
@@ -64,6 +64,7 @@ def _demos_and_weights(cfg: EvalConfig, info: dict) -> tuple[Path, Path]:
 
 def run_eval(cfg: EvalConfig) -> dict:
     from cotpc import load_policy
+    from cotpc.envs.moving_maze import RULES
     from cotpc.evaluation.maze import eval_name, evaluate
     from cotpc.policies.policy import read_config
 
@@ -77,15 +78,15 @@ def run_eval(cfg: EvalConfig) -> dict:
         raise SystemExit(f"cotpc eval: {cfg.run} was trained on {env_id}; supported: Moving Maze and ManiSkill3 tasks")
     demos, weights = _demos_and_weights(cfg, info)
     policy = load_policy(weights, device=cfg.device)
-    result = evaluate(policy, demos, cfg.split, cfg.episodes, cfg.video, cfg.num_videos, cfg.deadly_gaps,
-                      cfg.min_action)
+    rules = RULES[cfg.rules]
+    result = evaluate(policy, demos, cfg.split, cfg.episodes, cfg.video, cfg.num_videos, rules.deadly_gaps,
+                      rules.min_action)
     result.meta.update({"run": str(cfg.run), "checkpoint": cfg.checkpoint, "demos": str(demos)})
-    out = cfg.out or cfg.run / f"eval_{eval_name(cfg.split, cfg.deadly_gaps, cfg.min_action)}.json"
+    out = cfg.out or cfg.run / f"eval_{eval_name(cfg.split, rules.deadly_gaps, rules.min_action)}.json"
     result.to_json(out)
     s = result.summary()
-    rules = ("deadly gaps" if cfg.deadly_gaps else "", f"min action {cfg.min_action:g}" if cfg.min_action else "")
     print(
-        f"{cfg.run} [{', '.join([cfg.split, *filter(None, rules)])}] success {100 * s['success_rate']:.1f}% "
+        f"{cfg.run} [{cfg.split}, {cfg.rules} rules] success {100 * s['success_rate']:.1f}% "
         f"(95% CI {100 * s['ci95'][0]:.1f}-{100 * s['ci95'][1]:.1f}, n={s['episodes']}), "
         f"region transitions {s['mean_region_transitions']:.2f}/5, {s['seconds']:.2f} s -> {out}"
     )
@@ -98,9 +99,8 @@ def run_eval_maniskill(cfg: EvalConfig, info: dict, env_id: str) -> dict:
     from cotpc.envs.maniskill import import_maniskill
     from cotpc.evaluation.maniskill import evaluate, policy_loader
 
-    if cfg.deadly_gaps or cfg.min_action:
-        raise SystemExit("cotpc eval: --deadly-gaps and --min-action are Moving Maze rules; "
-                         f"{cfg.run} was trained on {env_id}")
+    if cfg.rules != "paper":
+        raise SystemExit(f"cotpc eval: --rules {cfg.rules} is a Moving Maze option; {cfg.run} was trained on {env_id}")
     import_maniskill()
     if cfg.video:
         raise SystemExit("cotpc eval: --video needs a render device for ManiSkill3 tasks; not supported yet")

@@ -60,6 +60,10 @@ class MazeReproduce:
     keep_checkpoints: bool = False
     """Keep every tenth-of-a-run checkpoint and evaluate each on the validation configs (success against
     iterations, in results.json and val_success.png): choose a schedule without the test configs."""
+    cot_weight: Optional[float] = None
+    """lambda, the weight of the CoT loss of the CoT policies (default: the paper's 0.1)."""
+    grad_clip: Optional[float] = None
+    """Clip the global gradient norm of every run to this value (default: off, as the paper)."""
 
 
 @dataclass
@@ -125,7 +129,8 @@ def main(argv: list[str], prog: str) -> None:
         jobs=cfg.jobs,
         extra_train_args={"device": cfg.device, "batch_size": cfg.batch_size or quick.get("batch_size"),
                           "n_centres": cfg.n_centres or quick.get("n_centres"),
-                          "keep_checkpoints": cfg.keep_checkpoints},
+                          "keep_checkpoints": cfg.keep_checkpoints, "cot_weight": cfg.cot_weight,
+                          **({"grad_clip": cfg.grad_clip} if cfg.grad_clip is not None else {})},
     )
     results = run(settings)
     print()

@@ -22,7 +22,7 @@ from __future__ import annotations
 import functools
 
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -43,6 +43,7 @@ from cotpc.envs.moving_maze import (
     TARGET_Y_RANGE,
     WIDTH,
     MazeConfig,
+    MazeRules,
     MovingMazeBatch,
     check_seed,
     region_of,
@@ -263,7 +264,9 @@ def generate(seeds: np.ndarray, split: str, workers: int = 1, landing: str = "ob
                 extra_attrs={"key_steps": {"description": "index of the first state in each new region (1..5)"}},
             )
         )
-    env_info = {"env_id": ENV_ID, "env_kwargs": {"landing": landing}, "max_episode_steps": HORIZON}
+    # the rules the demos were replayed under (the paper's, MazeRules' defaults): gym.make(env_id, **env_kwargs)
+    rules = asdict(MazeRules())
+    env_info = {"env_id": ENV_ID, "env_kwargs": {"landing": landing, **rules}, "max_episode_steps": HORIZON}
     meta = {
         "source_type": "motion_planning",
         "source_desc": "cotpc Moving Maze demonstrator: RRT-style legs on a static maze, blocks animated in hindsight",

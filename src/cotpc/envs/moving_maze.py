@@ -27,7 +27,7 @@ import numpy as np
 
 WIDTH, HEIGHT = 60.0, 80.0
 MAX_ACTION = 4.0  # each action component is clipped to [-4, 4]
-PAPER_MIN_ACTION = 1.5  # the paper: "both components in [1.5, 4]" (the min_action option; off by default)
+PAPER_MIN_ACTION = 1.5  # the paper: "both components in [1.5, 4]" (the default min_action rule)
 HORIZON = 60  # evaluation horizon (paper: "maximum number of steps as 60")
 BLOCK = 10.0  # squares and bridges are 10 x 10
 SPEED_RANGE = (1.0, 2.0)
@@ -60,6 +60,38 @@ ISLAND_SPLIT_X = (25.0, 30.0, 35.0)  # top, middle, bottom
 SEED_RANGES = {"train": (0, 1_000_000), "val": (1_000_000, 2_000_000), "test": (2_000_000, 3_000_000)}
 OBS_DIM, ACTION_DIM = 10, 2
 LANDING_RULES = ("observed", "moved")  # when the blocks move within a step (see MovingMazeBatch)
+
+
+@dataclass(frozen=True)
+class MazeRules:
+    """The two rules the paper states that a reconstruction could read more forgivingly (docs/moving-maze.md).
+
+    The defaults are the paper's: the agent "cannot cross the borders of the maze (but will not die from doing
+    so)", so a border is safe and a gap is not (``deadly_gaps``); the actions have "both components in [1.5, 4]"
+    (``min_action``: each component's magnitude is raised to at least 1.5). The demos are valid under all rules.
+    """
+
+    deadly_gaps: bool = True
+    """A step into a gap ends the episode as a failure (False: the step is blocked)."""
+    min_action: float = PAPER_MIN_ACTION
+    """Each action component's magnitude is raised to at least this, sign kept (0: any action up to 4)."""
+
+    @property
+    def name(self) -> str:
+        """The name of these rules in :data:`RULES` (``paper``, ``forgiving``, ...), or a descriptive one."""
+        for name, rules in RULES.items():
+            if rules == self:
+                return name
+        return f"{'deadly' if self.deadly_gaps else 'safe'}-gaps-min-action{self.min_action:g}"
+
+
+# Named rule sets: the paper's (the default) and the forgiving readings, kept for comparison.
+RULES = {
+    "paper": MazeRules(deadly_gaps=True, min_action=PAPER_MIN_ACTION),
+    "any-action": MazeRules(deadly_gaps=True, min_action=0.0),  # deadly gaps, any action up to 4
+    "safe-gaps": MazeRules(deadly_gaps=False, min_action=PAPER_MIN_ACTION),  # a step into a gap is blocked
+    "forgiving": MazeRules(deadly_gaps=False, min_action=0.0),  # both (this project's default before 2026-12)
+}
 
 
 def seeds_for(split: str, num: int, offset: int = 0) -> np.ndarray:
@@ -231,8 +263,8 @@ class MovingMazeBatch:
     An episode that has reached the target is done: it ignores further actions and stays successful.
 
     ``deadly_gaps`` picks the rule for a move that ends inside the maze but off walkable ground (in a gap where
-    no block is at that moment): ``False`` (default) leaves the agent where it is; ``True`` makes the agent fall
-    and ends the episode as a failure. Moves that would leave the maze are blocked under both rules (the paper:
+    no block is at that moment): ``True`` (default, the paper's) makes the agent fall and ends the episode as a
+    failure; ``False`` leaves the agent where it is. Moves that would leave the maze are blocked under both rules (the paper:
     the agent "cannot cross the borders ... but will not die from doing so").
 
     ``landing`` picks when the blocks move within a step: ``"observed"`` (default) checks the move against the
@@ -242,13 +274,14 @@ class MovingMazeBatch:
 
     ``min_action`` > 0 reads the paper's action range ("both components in [1.5, 4]") as a rule of the
     environment: each component's magnitude is raised to at least ``min_action`` (sign kept, 0 counts as
-    positive), so the agent can never stand still or creep. Default 0: any action up to 4 per component. The
-    demonstrator's actions are already in that range, so the demos are valid under both.
+    positive), so the agent can never stand still or creep. Default 1.5 (the paper's); 0: any action up to 4 per
+    component. The demonstrator's actions are already in that range, so the demos are valid under both.
+    :data:`RULES` names the combinations.
     """
 
     def __init__(
-        self, configs: list[MazeConfig], horizon: int = HORIZON, deadly_gaps: bool = False, landing: str = "observed",
-        min_action: float = 0.0,
+        self, configs: list[MazeConfig], horizon: int = HORIZON, deadly_gaps: bool = True, landing: str = "observed",
+        min_action: float = PAPER_MIN_ACTION,
     ):
         if not configs:
             raise ValueError("MovingMazeBatch needs at least one config")
@@ -354,8 +387,8 @@ class MovingMazeEnv(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
     def __init__(
-        self, render_mode: str | None = "rgb_array", horizon: int = HORIZON, deadly_gaps: bool = False,
-        landing: str = "observed", min_action: float = 0.0,
+        self, render_mode: str | None = "rgb_array", horizon: int = HORIZON, deadly_gaps: bool = True,
+        landing: str = "observed", min_action: float = PAPER_MIN_ACTION,
     ):
         self.render_mode = render_mode
         self.horizon = horizon

@@ -15,7 +15,9 @@ from pathlib import Path
 import numpy as np
 
 from cotpc.data.trajectories import load_trajectories
-from cotpc.envs.moving_maze import HORIZON, MazeConfig, MovingMazeBatch, check_seed, render_frame
+from cotpc.envs.moving_maze import (
+    HORIZON, PAPER_MIN_ACTION, MazeConfig, MazeRules, MovingMazeBatch, check_seed, render_frame,
+)
 
 # Which demo file holds each split's configurations, and the seed range they must come from. "val" configs are
 # for choosing settings and checkpoints; "unseen" (test) configs only for the final numbers.
@@ -60,10 +62,11 @@ def _load_split(demo_dir: str | Path, split: str, episodes: int | None) -> tuple
     return configs, seeds, data.env_info.get("env_kwargs", {})
 
 
-def eval_name(split: str, deadly_gaps: bool = False, min_action: float = 0.0) -> str:
-    """The name of an evaluation under these rules, as in ``eval_<name>.json``: e.g. ``unseen``,
-    ``val_deadly_gaps``, ``unseen_deadly_gaps_min_action1.5``."""
-    return split + ("_deadly_gaps" if deadly_gaps else "") + (f"_min_action{min_action:g}" if min_action else "")
+def eval_name(split: str, deadly_gaps: bool = True, min_action: float = PAPER_MIN_ACTION) -> str:
+    """The name of an evaluation under these rules, as in ``eval_<name>.json``: the split under the paper's
+    rules (``unseen``), else the split and the rules' name (``unseen_forgiving``, ``val_any-action``)."""
+    rules = MazeRules(deadly_gaps, float(min_action)).name
+    return split if rules == "paper" else f"{split}_{rules}"
 
 
 @dataclass
@@ -108,9 +111,9 @@ def rollout(
     split: str,
     horizon: int = HORIZON,
     record: int = 0,
-    deadly_gaps: bool = False,
+    deadly_gaps: bool = True,
     landing: str = "observed",
-    min_action: float = 0.0,
+    min_action: float = PAPER_MIN_ACTION,
 ) -> tuple[EvalResult, list[list[np.ndarray]]]:
     """Roll ``policy`` out in all ``configs`` at once. Returns the result and, for the first ``record`` episodes,
     the agent positions and block states needed to draw them."""
@@ -168,14 +171,14 @@ def evaluate(
     episodes: int | None = None,
     video_dir: str | Path | None = None,
     num_videos: int = 4,
-    deadly_gaps: bool = False,
-    min_action: float = 0.0,
+    deadly_gaps: bool = True,
+    min_action: float = PAPER_MIN_ACTION,
 ) -> EvalResult:
     """Success rate of ``policy`` on the ``seen``, ``val`` or ``unseen`` Moving Maze configs of ``demo_dir``.
 
-    ``deadly_gaps``: a step into a gap ends the episode as a failure instead of being blocked; ``min_action``:
-    every action component's magnitude is raised to at least this (see
-    :class:`cotpc.envs.moving_maze.MovingMazeBatch`)."""
+    The rules default to the paper's (:class:`cotpc.envs.moving_maze.MazeRules`): ``deadly_gaps``, a step into
+    a gap ends the episode as a failure (False: it is blocked); ``min_action``, every action component's
+    magnitude is raised to at least this (0: any action)."""
     configs, seeds, env_kwargs = _load_split(demo_dir, split, episodes)
     landing = env_kwargs.get("landing", "observed")  # the rule the demos were planned for
     record = min(num_videos, len(configs)) if video_dir else 0

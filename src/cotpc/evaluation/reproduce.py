@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cotpc.envs.moving_maze import HORIZON, PAPER_MIN_ACTION
+from cotpc.envs.moving_maze import HORIZON, PAPER_MIN_ACTION, RULES
 from cotpc.evaluation.maze import eval_name
 
 # The paper's Table 1 (Moving Maze, unseen configs, success %). Its ablations (Table 4) are on ManiSkill2 only.
@@ -24,23 +24,22 @@ PAPER_UNSEEN = {"bc": 9.0, "dt": 23.0, "bet": 33.0, "cotpc": 44.0}
 BASELINES = ("bc", "dt", "bet", "cotpc")
 # Result key -> (split, deadly_gaps, min_action); the key is also the name of the run's eval_<key>.json. Training
 # never sees these rules (the demos never step into a gap and their action components are all in [1.5, 4]), so the
-# same checkpoints are evaluated under each: the default rules, deadly gaps, the paper's literal action range
-# (every component's magnitude >= 1.5: no standing still or creeping) and both. "val" configs come from the
-# validation seed range: they are for diagnosing and choosing settings, so that nothing is ever tuned on "unseen"
-# (test) configs.
+# same checkpoints are evaluated under each: the paper's rules (the default: deadly gaps and actions in [1.5, 4];
+# key = the split), and the forgiving readings of them kept for comparison (key = split_<rules>, MazeRules).
+# "val" configs come from the validation seed range: they are for diagnosing and choosing settings, so that
+# nothing is ever tuned on "unseen" (test) configs.
 EVAL_KEYS = {
-    eval_name(split, deadly, min_action): (split, deadly, min_action)
-    for deadly, min_action, splits in (
-        (False, 0.0, ("seen", "val", "unseen")),
-        (True, 0.0, ("seen", "val", "unseen")),
-        (False, PAPER_MIN_ACTION, ("val", "unseen")),
-        (True, PAPER_MIN_ACTION, ("val", "unseen")),
+    eval_name(split, RULES[rules].deadly_gaps, RULES[rules].min_action): (split, RULES[rules].deadly_gaps,
+                                                                          RULES[rules].min_action)
+    for rules, splits in (
+        ("paper", ("seen", "val", "unseen")),
+        ("forgiving", ("seen", "val", "unseen")),
+        ("any-action", ("val", "unseen")),
+        ("safe-gaps", ("val", "unseen")),
     )
     for split in splits
 }
-# Key suffixes: the paper's action range alone, and with deadly gaps (the strictest rules).
-PAPER_ACTIONS = eval_name("", False, PAPER_MIN_ACTION)
-STRICT = eval_name("", True, PAPER_MIN_ACTION)
+CURVE_KEYS = ("val", "val_forgiving")  # validation success of every kept checkpoint, under these rules
 ABLATIONS = ("only-last", "only-next", "random", "vanilla", "o-shared", "swapped", "bet-prompt", "no-rand-mask", "decoupled")
 
 
@@ -119,10 +118,9 @@ def run(s: ReproduceSettings) -> dict:
                     raised[key].append(summary["raised_share"])
             print(
                 f"[4/5] {name} seed {seed}: seen {per_split['seen'][-1]:.1f}%  val {per_split['val'][-1]:.1f}%  "
-                f"unseen {per_split['unseen'][-1]:.1f}%  (deadly gaps: seen {per_split['seen_deadly_gaps'][-1]:.1f}%  "
-                f"val {per_split['val_deadly_gaps'][-1]:.1f}%  unseen {per_split['unseen_deadly_gaps'][-1]:.1f}%; "
-                f"with the paper's action range too: val {per_split['val' + STRICT][-1]:.1f}%  "
-                f"unseen {per_split['unseen' + STRICT][-1]:.1f}%)",
+                f"unseen {per_split['unseen'][-1]:.1f}%  (forgiving rules: seen "
+                f"{per_split['seen_forgiving'][-1]:.1f}%  val {per_split['val_forgiving'][-1]:.1f}%  "
+                f"unseen {per_split['unseen_forgiving'][-1]:.1f}%)",
                 flush=True,
             )
         results[name] = {
@@ -181,10 +179,10 @@ def train_parallel(out: Path, data: Path, runs: list[tuple[str, int]], iters: in
 
 
 def checkpoint_curve(run_dir: Path, demos: Path, val_seeds: list[int], device: str) -> dict:
-    """Success on the validation configs (default rules, deadly gaps, and deadly gaps with the paper's action
-    range) of every checkpoint kept under ``run_dir/checkpoints``:
-    how success moves with training length, measured without the test configs. Cached like the final evaluations."""
-    keys = ("val", "val_deadly_gaps", "val" + STRICT)
+    """Success on the validation configs (the paper's rules, and the forgiving ones) of every checkpoint kept
+    under ``run_dir/checkpoints``: how success moves with training length, measured without the test configs.
+    Cached like the final evaluations."""
+    keys = CURVE_KEYS
     curve: dict = {"iteration": [], **{key: [] for key in keys}}
     for ckpt in sorted((run_dir / "checkpoints").glob("step_*")):
         curve["iteration"].append(int(ckpt.name.split("_")[1]))
@@ -296,8 +294,11 @@ def _finished(run_dir: Path, iters: int, wanted: dict | None = None) -> bool:
     if "policy" in wanted:
         from cotpc.policies.config import get_preset
 
-        if get_preset(wanted["policy"]).action_head != "bet":
+        preset = get_preset(wanted["policy"])
+        if preset.action_head != "bet":
             ignore.add("n_centres")  # no k-means head: K changes nothing (BC/DT runs serve studies with any K)
+        if not preset.cot_targets:
+            ignore.add("cot_weight")  # no CoT loss: its weight changes nothing
     diff = {k: (saved.get(k), v) for k, v in wanted.items() if k not in ignore and saved.get(k) != v}
     if diff:
         raise ValueError(f"{run_dir} holds a run trained with other settings (saved, asked for): {diff}. "
@@ -325,13 +326,14 @@ def write_report(results: dict, out: Path) -> Path:
         f"{meta['wall_seconds'] / 60:.1f} min, on {meta['hardware']['cpus']} CPU(s) "
         f"({meta['hardware']['machine']}); torch {meta['versions']['torch']}, numpy {meta['versions']['numpy']}.",
         "",
-        "Success rate (%): mean ± std over seeds, best seed in brackets; region transitions: mean of 5. "
-        "Default rule: a step into a gap is blocked; *deadly gaps*: it ends the episode as a failure "
-        "(same checkpoints, see docs/moving-maze.md).",
+        f"Success rate (%): mean ± std over seeds, best seed in brackets; region transitions: mean of 5. "
+        f"The paper's rules (the default): a step into a gap ends the episode as a failure, and every action "
+        f"component's magnitude is raised to at least {PAPER_MIN_ACTION:g} (\"both components in "
+        f"[{PAPER_MIN_ACTION:g}, 4]\"); *raised*: the share of the policy's action components (unseen configs) "
+        f"that were smaller and so were raised, mean over seeds (docs/moving-maze.md).",
         "",
-        "| policy | seen | val | unseen | unseen transitions | seen, deadly gaps | val, deadly gaps "
-        "| unseen, deadly gaps | paper unseen |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| policy | seen | val | unseen | unseen transitions | raised | paper unseen |",
+        "|---|---|---|---|---|---|---|",
     ]
 
     def cell(r):
@@ -341,39 +343,35 @@ def write_report(results: dict, out: Path) -> Path:
         r = results[p]
         lines.append(
             f"| {p} | {cell(r['seen'])} | {cell(r['val'])} | {cell(r['unseen'])} | "
-            f"{r['unseen']['region_transitions']:.2f} | {cell(r['seen_deadly_gaps'])} | {cell(r['val_deadly_gaps'])} | "
-            f"{cell(r['unseen_deadly_gaps'])} | {PAPER_UNSEEN.get(p, '–')} |"
+            f"{r['unseen']['region_transitions']:.2f} | {100 * r['unseen'].get('raised_share', float('nan')):.1f}% | "
+            f"{PAPER_UNSEEN.get(p, '–')} |"
         )
-    m = f"{PAPER_MIN_ACTION:g}"
     lines += [
         "",
-        f"**The paper's action range.** The paper gives the actions as displacements with \"both components in "
-        f"[{m}, 4]\". Read as a rule of the environment, every action component's magnitude is raised to at least "
-        f"{m} (sign kept): a policy cannot stand still at a gap's edge or creep. Same checkpoints "
-        f"(`cotpc eval RUN --min-action {m} [--deadly-gaps]`). *Raised*: the share of the policy's action "
-        f"components (unseen configs) that were smaller than {m} and so were raised, mean over seeds.",
+        "**Forgiving readings of the rules**, same checkpoints (`cotpc eval RUN --rules NAME`): *forgiving*, a step "
+        "into a gap is blocked and any action up to 4 is allowed (this project's default before 2026-12); "
+        "*any-action*, deadly gaps with any action; *safe-gaps*, blocked gaps with actions in "
+        f"[{PAPER_MIN_ACTION:g}, 4].",
         "",
-        "| policy | val | unseen | raised | val, deadly gaps | unseen, deadly gaps | paper unseen |",
-        "|---|---|---|---|---|---|---|",
+        "| policy | seen, forgiving | val, forgiving | unseen, forgiving | val, any-action | unseen, any-action "
+        "| val, safe-gaps | unseen, safe-gaps |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for p in policies:
         r = results[p]
-        unseen = r["unseen" + PAPER_ACTIONS]
-        lines.append(f"| {p} | {cell(r['val' + PAPER_ACTIONS])} | {cell(unseen)} | "
-                     f"{100 * unseen.get('raised_share', float('nan')):.1f}% | "
-                     f"{cell(r['val' + STRICT])} | {cell(r['unseen' + STRICT])} | {PAPER_UNSEEN.get(p, '–')} |")
+        lines.append(f"| {p} | " + " | ".join(cell(r[k]) for k in (
+            "seen_forgiving", "val_forgiving", "unseen_forgiving", "val_any-action", "unseen_any-action",
+            "val_safe-gaps", "unseen_safe-gaps")) + " |")
     if meta["ablations"]:
         lines += ["", "## CoTPC ablations (paper Table 4 presets, one seed each)", "",
-                  "| preset | seen | val | unseen | val, deadly gaps | unseen, deadly gaps "
-                  "| val, deadly gaps + paper actions | unseen, deadly gaps + paper actions |",
-                  "|---|---|---|---|---|---|---|---|"]
+                  "| preset | seen | val | unseen | seen, forgiving | val, forgiving | unseen, forgiving |",
+                  "|---|---|---|---|---|---|---|"]
         for a in ["cotpc"] * ("cotpc" in results) + list(meta["ablations"]):
             r = results[a]
             name = f"{a} (full method, seed 0)" if a == "cotpc" else a
             first = {k: r[k]["runs"][0] for k in EVAL_KEYS}  # seed 0 of the full method, to compare like with like
-            lines.append(f"| {name} | {first['seen']:.1f} | {first['val']:.1f} | {first['unseen']:.1f} | "
-                         f"{first['val_deadly_gaps']:.1f} | {first['unseen_deadly_gaps']:.1f} | "
-                         f"{first['val' + STRICT]:.1f} | {first['unseen' + STRICT]:.1f} |")
+            lines.append(f"| {name} | " + " | ".join(f"{first[k]:.1f}" for k in (
+                "seen", "val", "unseen", "seen_forgiving", "val_forgiving", "unseen_forgiving")) + " |")
     figures = _plots(results, out, policies + list(meta["ablations"]))
     lines += ["", "## Figures", ""] + [f"![{f.stem}]({f.name})" for f in figures]
     videos = sorted((out / "videos").glob("*/*.gif")) if (out / "videos").exists() else []
@@ -395,7 +393,7 @@ def _plots(results: dict, out: Path, names: list[str]) -> list[Path]:
     # Success bars
     fig, ax = plt.subplots(figsize=(1.5 + 1.1 * len(names), 3.4))
     x = np.arange(len(names))
-    keys = ["seen", "val", "unseen", "unseen_deadly_gaps", "unseen" + PAPER_ACTIONS, "unseen" + STRICT]
+    keys = ["seen", "val", "unseen", "val_forgiving", "unseen_forgiving"]
     width = 0.8 / len(keys)
     for k, key in enumerate(keys):
         means = [results[n][key]["mean"] for n in names]
@@ -423,7 +421,7 @@ def plot_val_success(curves: dict, names: list[str], path: Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    keys = [k for k in ("val", "val_deadly_gaps", "val" + STRICT) if all(k in c for c in curves.values())]
+    keys = [k for k in CURVE_KEYS if all(k in c for c in curves.values())]
     fig, axes = plt.subplots(1, len(keys), figsize=(4.5 * len(keys), 3.4), sharey=True, squeeze=False)
     axes = axes[0]
     colours = {n: f"C{i % 10}" for i, n in enumerate(names)}

@@ -78,8 +78,10 @@ class TrainConfig:
     """Attention heads (default 8)."""
     dropout: Optional[float] = None
     """Dropout (default 0, as the official code)."""
-    grad_clip: float = 1.0
-    """Clip the global gradient norm to this value (0 = off)."""
+    cot_weight: Optional[float] = None
+    """lambda, the weight of the CoT loss (default: the paper's 0.1; ignored by policies without a CoT loss)."""
+    grad_clip: float = 0.0
+    """Clip the global gradient norm to this value (default 0 = off, as the paper and the official code)."""
     val_fraction: float = 0.1
     """Fraction of the file's episodes held out for the validation loss (split by episode, seeded)."""
     val_every: int = 1000
@@ -275,6 +277,7 @@ def train(config: TrainConfig) -> Path:
         batch_size=config.batch_size, lr=config.lr, min_lr=config.min_lr, warmup_iters=config.warmup_iters,
         weight_decay=config.weight_decay, cot_layer=config.cot_layer, d_model=config.d_model,
         n_layers=config.n_layers, n_heads=config.n_heads, dropout=config.dropout,
+        cot_weight=config.cot_weight if PRESETS[config.policy].cot_targets else None,
     )
     if cfg.batch_size % world:
         raise ValueError(f"batch size {cfg.batch_size} is not divisible by the {world} processes")
