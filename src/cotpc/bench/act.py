@@ -21,7 +21,7 @@ import tyro
 class Config:
     """Time select_action of each policy."""
 
-    policies: tuple[str, ...] = ("bc", "dt", "bet", "cotpc", "decoupled")
+    policies: tuple[str, ...] = ("bc", "dt", "bet", "cotpc", "cotpc-causal", "decoupled")
     """Policies to time."""
     batch_sizes: tuple[int, ...] = (1, 100)
     """Numbers of environments acting at once."""

@@ -15,7 +15,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from cotpc.policies.config import PolicyConfig
-from cotpc.policies.transformer import GPT, mlp
+from cotpc.policies.transformer import GPT, mlp, run_mlp
 
 
 class RowGatheredLinear(torch.autograd.Function):
@@ -93,6 +93,10 @@ class TransformerPolicy(nn.Module):
             row_of = torch.full((lay.length,), -1, dtype=torch.long)
             row_of[rows] = torch.arange(len(rows))
         self.register_buffer("row_of", row_of, persistent=False)
+        # inference: the sources the action heads read at the last window index, and their last-block rows
+        self._last_sources, last = self._inference_rows()
+        self._last_slice = last if isinstance(last, slice) else None
+        self.register_buffer("last_rows", last if isinstance(last, torch.Tensor) else None, persistent=False)
 
     # --- features -------------------------------------------------------------------------------------------
     def _predict_cot(self, gpt: GPT, states, actions, timesteps, valid, cot_hide, rows=None):
@@ -214,29 +218,49 @@ class TransformerPolicy(nn.Module):
         return total, metrics
 
     # --- inference --------------------------------------------------------------------------------------------
-    def _last_features(self, batch: dict) -> dict[str, torch.Tensor]:
-        """(B, d) features of the last window index for each source the action heads read.
-
-        The same values as ``_select(features, source)[:, -1]``, but the last block computes only the tokens
-        read: the state token s(T-1), the CoT token T-1 and the action token a(T-2)."""
+    # Inference runs GPT.infer: the values of the training forward at the last window index, in fewer ops (no
+    # autograd bookkeeping, the last block on the tokens read only, the CoT transformer up to its CoT layer).
+    def _inference_rows(self) -> tuple[tuple[str, ...], slice | torch.Tensor]:
+        """The sources the action heads read at the last window index and their token rows in the last block:
+        the state token s(T-1), the CoT token T-1 and the action token a(T-2) (a slice when consecutive)."""
         cfg, lay = self.cfg, self.gpt.layout
         sources = {cfg.centre_from} | ({cfg.offset_from} if cfg.action_head == "bet" else set())
         if "action" in sources:
             sources.add("state")  # an action token that is missing or padding falls back to the state token
         s_row = int(lay.state_pos[-1])
-        rows = {src: {"state": s_row, "cot": lay.C - 1, "action": max(s_row - 1, 0)}[src] for src in sorted(sources)}
-        states, actions = batch["states"], batch["actions"][:, :-1] if cfg.use_actions else None
-        timesteps, valid = batch["timesteps"], batch.get("valid")
+        order = tuple(sorted(sources))
+        rows = [{"state": s_row, "cot": lay.C - 1, "action": max(s_row - 1, 0)}[src] for src in order]
+        if rows == list(range(rows[0], rows[0] + len(rows))):
+            return order, slice(rows[0], rows[0] + len(rows))  # a view, no gather
+        return order, torch.tensor(rows)
+
+    def _infer_features(self, states, actions, timesteps, valid=None, n_prev=None) -> dict[str, torch.Tensor]:
+        """(B, d) features of the last window index for each source the action heads read. states (B, T, q),
+        actions (B, T-1, p) (None without action tokens), timesteps (B, T); left padding as ``valid`` (B, T) or
+        ``n_prev`` (B,), see :meth:`GPT.inference_bias`."""
+        cfg, lay = self.cfg, self.gpt.layout
         if cfg.decoupled:  # the CoT transformer's prediction is an input of the action transformer
-            _, cot_pred = self._predict_cot(self.cot_gpt, states, actions, timesteps, valid, None)
-            states = torch.cat([states, cot_pred.to(states.dtype)], dim=-1)
-        row_index = torch.tensor(list(rows.values()), device=states.device)
-        x, _ = self.gpt(states, actions, timesteps, valid, rows=row_index)  # (B, len(rows), d)
-        feats = {src: x[:, i] for i, src in enumerate(rows)}
+            cot = self.cot_gpt
+            kept = cot.infer(states, actions, timesteps, cot.inference_bias(valid, n_prev), rows=slice(0, cot.layout.C),
+                             n_blocks=self.cot_layer + 1)  # its later blocks feed nothing here
+            states = torch.cat([states, run_mlp(self.cot_head, kept).to(states.dtype)], dim=-1)
+        rows = self._last_slice if self._last_slice is not None else self.last_rows
+        x = self.gpt.infer(states, actions, timesteps, self.gpt.inference_bias(valid, n_prev), rows=rows)
+        x = F.layer_norm(x, x.shape[-1:], self.gpt.ln_f.weight, self.gpt.ln_f.bias, self.gpt.ln_f.eps)
+        feats = {src: x[:, i] for i, src in enumerate(self._last_sources)}
         if "action" in feats:
-            has_prev = valid[:, -2] if (valid is not None and lay.T > 1) else torch.tensor(lay.T > 1)
-            feats["action"] = torch.where(has_prev.reshape(-1, 1), feats["action"], feats["state"])
+            if lay.T == 1:  # no earlier action token
+                feats["action"] = feats["state"]
+            elif n_prev is not None or valid is not None:
+                has_prev = (n_prev >= 1) if n_prev is not None else valid[:, -2]
+                feats["action"] = torch.where(has_prev.reshape(-1, 1), feats["action"], feats["state"])
         return feats
+
+    def _last_features(self, batch: dict) -> dict[str, torch.Tensor]:
+        """(B, d) features of the last window index for each source the action heads read: the same values as
+        ``_select(features, source)[:, -1]`` of the training forward (tested)."""
+        actions = batch["actions"][:, :-1] if self.cfg.use_actions else None
+        return self._infer_features(batch["states"], actions, batch["timesteps"], batch.get("valid"))
 
     @torch.no_grad()
     def inference_metrics(self, batch: dict) -> dict[str, torch.Tensor]:
@@ -275,14 +299,27 @@ class TransformerPolicy(nn.Module):
             out["cot"] = ((cot_last.float() - batch["cot"][:, -1]) ** 2).mean()
         return out
 
+    @torch.no_grad()  # the inference path writes into preallocated buffers: no autograd through it
     def predict(self, batch: dict) -> torch.Tensor:
         """Normalised action (B, p) for the last window index (no random CoT mask)."""
+        return self._act(self._last_features(batch))
+
+    @torch.no_grad()
+    def predict_window(self, states, actions, timesteps, n_prev=None) -> torch.Tensor:
+        """:meth:`predict` from the window's tensors (see :meth:`_infer_features`); what ``select_action`` calls."""
+        return self._act(self._infer_features(states, actions, timesteps, n_prev=n_prev))
+
+    def _act(self, feats: dict) -> torch.Tensor:
+        """The action heads at inference: the MSE decoder, or the arg-max centre plus that centre's offset."""
         cfg = self.cfg
-        feats = self._last_features(batch)
         if cfg.action_head == "mse":
-            return self.action_decoder(feats[cfg.centre_from]).float()
-        c = self.centre_head(feats[cfg.centre_from]).float().argmax(-1)
-        off = self._true_centre_offsets(feats[cfg.offset_from][:, None], c[:, None])[:, 0].float()
+            return run_mlp(self.action_decoder, feats[cfg.centre_from]).float()
+        c = run_mlp(self.centre_head, feats[cfg.centre_from]).float().argmax(-1)
+        # the offset of centre c only (RowGatheredLinear's forward without the autograd bookkeeping)
+        hidden = run_mlp(self.offset_head, feats[cfg.offset_from], n_layers=len(self.offset_head) - 1).float()
+        last, p = self.offset_head[-1], self.action_dim
+        w = last.weight.view(-1, p, last.weight.shape[1])[c]  # (B, p, h)
+        off = torch.bmm(w, hidden[:, :, None])[:, :, 0] + last.bias.view(-1, p)[c]
         return self.centres[c] + off
 
 

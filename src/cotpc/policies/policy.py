@@ -16,7 +16,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from cotpc.policies.config import PolicyConfig
-from cotpc.policies.model import make_model
+from cotpc.policies.model import TransformerPolicy, make_model
 
 FORMAT = "cotpc-policy"
 
@@ -104,6 +104,12 @@ class Policy:
     ``select_action(obs)`` takes (B, q) raw observations (one per environment) and returns (B, p) actions.
     ``reset()`` clears every environment's context; ``reset(envs)`` only those given as a boolean mask or
     indices (for vectorised environments that finish at different times).
+
+    At batch 1 a step is ~150 small ops, so their count matters more than their arithmetic: on a CPU the
+    windows, step counters and (de)normalisation are NumPy (a small NumPy op costs a fraction of a torch op),
+    the attention mask of a partly filled context is looked up (:meth:`GPT.inference_bias`) and the network
+    runs its inference path (:meth:`TransformerPolicy.predict_window`), the values of the training forward at
+    the last window index (tested in tests/test_inference_speedpath.py).
     """
 
     def __init__(self, model: torch.nn.Module, info: dict | None = None, device: str = "cpu"):
@@ -113,39 +119,44 @@ class Policy:
         self.cfg: PolicyConfig = model.cfg
         self.obs_dim, self.action_dim = model.obs_dim, model.action_dim
         self.T = self.cfg.window
+        self._transformer = isinstance(model, TransformerPolicy)
         n = model.norm
         self._obs_mean, self._obs_std, self._act_mean, self._act_std = n.obs_mean, n.obs_std, n.act_mean, n.act_std
-        self._arange = torch.arange(self.T, device=self.device)
-        self._states = None  # (B, T, q) normalised, oldest first
-        self._actions = None  # (B, T, p) normalised; the last slot is filled after acting
-        self._t = None  # (B,) timestep of the next observation
-        self._n = None  # (B,) number of earlier steps held in the context
+        if self.device.type == "cpu":  # NumPy views of the same buffers
+            self._np_stats = tuple(x.numpy() for x in (n.obs_mean, n.obs_std, n.act_mean, n.act_std))
+        self._window_steps = np.arange(self.T) - (self.T - 1)  # timestep of each window index, minus the last
+        self._states = None  # (B, T, q) normalised, oldest first (NumPy on a CPU)
+        self._actions = None  # (B, T, p) normalised; the last slot is the action just taken (NumPy on a CPU)
+        self._t = None  # (B,) NumPy: timestep of the next observation
+        self._n = None  # (B,) NumPy: number of earlier steps held in the context
 
     @property
     def num_envs(self) -> int | None:
         return None if self._states is None else self._states.shape[0]
 
-    @torch.inference_mode()
     def reset(self, envs=None) -> None:
         if envs is None or self._states is None:
             self._states = None
             return
-        idx = torch.as_tensor(np.asarray(envs), device=self.device)
-        if idx.dtype == torch.bool and idx.shape[0] != self._states.shape[0]:
+        idx = np.asarray(envs.cpu() if isinstance(envs, torch.Tensor) else envs)
+        if idx.dtype == bool and idx.shape[0] != self._states.shape[0]:
             raise ValueError(f"reset mask has {idx.shape[0]} entries for {self._states.shape[0]} environments")
         self._t[idx] = 0
         self._n[idx] = 0
 
     def _allocate(self, B: int) -> None:
-        dev = self.device
-        self._states = torch.zeros(B, self.T, self.obs_dim, device=dev)
-        self._actions = torch.zeros(B, self.T, self.action_dim, device=dev)
-        self._t = torch.zeros(B, dtype=torch.long, device=dev)
-        self._n = torch.zeros(B, dtype=torch.long, device=dev)
+        if self.device.type == "cpu":
+            self._states = np.zeros((B, self.T, self.obs_dim), dtype=np.float32)
+            self._actions = np.zeros((B, self.T, self.action_dim), dtype=np.float32)
+        else:
+            self._states = torch.zeros(B, self.T, self.obs_dim, device=self.device)
+            self._actions = torch.zeros(B, self.T, self.action_dim, device=self.device)
+        self._t = np.zeros(B, dtype=np.int64)
+        self._n = np.zeros(B, dtype=np.int64)
 
     @torch.inference_mode()
     def select_action(self, obs) -> np.ndarray:
-        obs = torch.as_tensor(np.asarray(obs, dtype=np.float32), device=self.device)
+        obs = np.asarray(obs, dtype=np.float32)
         if obs.ndim == 1:
             raise ValueError(f"select_action takes a batch (B, {self.obs_dim}); got shape {tuple(obs.shape)}")
         if obs.ndim != 2 or obs.shape[1] != self.obs_dim:
@@ -158,20 +169,48 @@ class Policy:
             self._allocate(B)
         elif B != self._states.shape[0]:
             raise ValueError(f"got {B} observations for {self._states.shape[0]} environments; call reset() first")
-        s = (obs - self._obs_mean) / self._obs_std
-        if self.T > 1:  # shift the windows one step left (oldest out)
-            self._states = torch.roll(self._states, -1, dims=1)
-            self._actions = torch.roll(self._actions, -1, dims=1)
+        if self.device.type == "cpu":
+            return self._step_cpu(obs)
+        return self._step(torch.as_tensor(obs, device=self.device))
+
+    def _step_cpu(self, obs: np.ndarray) -> np.ndarray:
+        """One step on a CPU: the window bookkeeping in NumPy (each small NumPy op costs a fraction of a torch
+        op; the elementwise float32 maths is the same), the network in torch on views of the NumPy buffers."""
+        obs_mean, obs_std, act_mean, act_std = self._np_stats
+        s = (obs - obs_mean) / obs_std
+        # shift the window one step left (oldest out, newest in); slots before an episode's start keep stale
+        # values, which the padding mask hides from every real token
+        self._states[:, :-1] = self._states[:, 1:]
         self._states[:, -1] = s
-        batch = {"states": self._states, "actions": self._actions,
-                 "timesteps": self._t[:, None] - (self.T - 1) + self._arange}
-        if self.T > 1 and bool((self._n < self.T - 1).any()):  # some context still starts inside the window
-            batch["valid"] = self._arange[None, :] >= (self.T - 1 - self._n)[:, None]
-        a = self.model.predict(batch)
+        self._actions[:, :-1] = self._actions[:, 1:]  # [:, :-1] are now this window's T-1 earlier actions
+        states, prev = torch.from_numpy(self._states), torch.from_numpy(self._actions[:, :-1])
+        a = self._predict(states, prev).numpy()
         self._actions[:, -1] = a
+        return a * act_std + act_mean
+
+    def _step(self, obs: torch.Tensor) -> np.ndarray:
+        """One step on an accelerator: the same as :meth:`_step_cpu` with the buffers on the device."""
+        s = (obs - self._obs_mean) / self._obs_std
+        self._states = torch.cat([self._states[:, 1:], s[:, None]], dim=1)
+        prev = self._actions[:, 1:]
+        a = self._predict(self._states, prev)
+        self._actions = torch.cat([prev, a[:, None]], dim=1)
+        return (a * self._act_std + self._act_mean).cpu().numpy()
+
+    def _predict(self, states: torch.Tensor, prev: torch.Tensor) -> torch.Tensor:
+        """Normalised actions (B, p) for the windows ``states`` (B, T, q) and earlier actions ``prev`` (B, T-1, p);
+        advances the step counters."""
+        if self._transformer:
+            t = self._t[:, None] + self._window_steps  # (B, T); the network clamps them to its table
+            n_prev = None  # None: every context is full, the constant mask applies
+            if self.T > 1 and self._n.min() < self.T - 1:  # some context still starts inside the window
+                n_prev = torch.from_numpy(np.minimum(self._n, self.T - 1)).to(self.device)
+            a = self.model.predict_window(states, prev, torch.from_numpy(t).to(self.device), n_prev)
+        else:  # the Markovian MLP reads the current state only
+            a = self.model.predict({"states": states})
         self._t += 1
         self._n += 1
-        return (a * self._act_std + self._act_mean).cpu().numpy()
+        return a
 
 
 def load_policy(run_dir: str | os.PathLike, device: str = "cpu") -> Policy:

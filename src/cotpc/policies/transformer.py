@@ -20,6 +20,10 @@ t-T+1+i. Who may attend to whom is decided by :func:`build_mask` from this layou
 Attention runs ``F.scaled_dot_product_attention`` on CUDA (fused kernels) and :class:`MaskedAttention`, a plain
 matmul + masked softmax with a hand-written backward, on a CPU: for our small heads (29 tokens x 16 dims) the CPU
 SDPA kernels are slower (measured in docs/performance.md), and their bf16 backward especially so.
+
+Inference (``select_action``) runs :meth:`GPT.infer`: the same maths in fewer ops (no autograd bookkeeping, a
+looked-up padding mask, the last block on the tokens read only); at batch 1 a step is ~150 small ops, and on a
+CPU the op count and the weights streamed through the cache cost more than the arithmetic.
 """
 
 from __future__ import annotations
@@ -156,6 +160,20 @@ def attention(q, k, v, mask: torch.Tensor, bias: torch.Tensor | None, dropout_p:
     return MaskedAttention.apply(q, k, v, bias)
 
 
+def infer_attention(q, k, v, bias: torch.Tensor, n_heads: int) -> torch.Tensor:
+    """Inference-only :func:`attention` (no autograd, no dropout) on heads flattened into the batch: q (B*H, R, d),
+    k and v (B*H, L, d), the additive bias (B or 1, 1, R, L). The maths of :class:`MaskedAttention` (scale and
+    bias in the scores' GEMM call: ``baddbmm``) without its bookkeeping (the ``autograd.Function`` call, the
+    contiguous copies, the saved tensors), which at batch 1 costs more than the arithmetic."""
+    BH, R, d = q.shape
+    if bias.shape[0] == 1:
+        bias = bias[0]  # (1, R, L): broadcast over the batch and the heads
+    else:
+        bias = bias.expand(-1, n_heads, -1, -1).reshape(BH, R, -1)
+    scores = torch.baddbmm(bias, q, k.transpose(1, 2), alpha=d ** -0.5)
+    return torch.bmm(torch.softmax(scores, dim=-1), v)
+
+
 class Block(nn.Module):
     """Pre-LN transformer block with fused QKV and :func:`attention`."""
 
@@ -181,6 +199,25 @@ class Block(nn.Module):
         x = x + self.resid_drop(self.proj(y.transpose(1, 2).reshape(B, x.shape[1], D)))
         return x + self.mlp(self.ln2(x))
 
+    def infer(self, x: torch.Tensor, bias: torch.Tensor, rows=None) -> torch.Tensor:
+        """Inference-only :meth:`forward` (eval mode: no dropout): the same maths with the layers' functions
+        called directly, and :func:`infer_attention`. ``bias`` is the additive mask (B or 1, 1, L, L); ``rows``
+        (token positions, a tensor or a slice) as in :meth:`forward`."""
+        B, L, D = x.shape
+        H, d = self.n_heads, D // self.n_heads
+        h = F.layer_norm(x, (D,), self.ln1.weight, self.ln1.bias, self.ln1.eps)
+        qkv = F.linear(h, self.qkv.weight, self.qkv.bias).view(B, L, 3, H, d).permute(2, 0, 3, 1, 4)
+        q, k, v = qkv.reshape(3, B * H, L, d)  # a view at batch 1
+        if rows is not None:
+            q, x, bias = q[:, rows], x[:, rows], bias[..., rows, :]
+        R = x.shape[1]
+        y = infer_attention(q, k, v, bias, H).view(B, H, R, d).transpose(1, 2).reshape(B, R, D)
+        x = x + F.linear(y, self.proj.weight, self.proj.bias)
+        fc1, act, fc2 = self.mlp[0], self.mlp[1], self.mlp[2]
+        h = F.layer_norm(x, (D,), self.ln2.weight, self.ln2.bias, self.ln2.eps)
+        return x + F.linear(F.gelu(F.linear(h, fc1.weight, fc1.bias), approximate=act.approximate),
+                            fc2.weight, fc2.bias)
+
 
 class GPT(nn.Module):
     """Encoders, positional embeddings, CoT prompt tokens and the blocks. Returns token features."""
@@ -201,6 +238,11 @@ class GPT(nn.Module):
         # the inference mask never changes: build it once (buffers follow .to(device), not saved)
         self.register_buffer("base_mask", build_mask(self.layout), persistent=False)
         self.register_buffer("base_bias", mask_to_bias(self.base_mask), persistent=False)
+        # inference: the bias of a window that starts n = 0..T-1 steps before its last index (left padding
+        # before that), so select_action looks it up instead of building it each step
+        T = cfg.context
+        starts = torch.arange(T)[None, :] >= (T - 1 - torch.arange(T))[:, None]  # (n, window index)
+        self.register_buffer("padded_bias", mask_to_bias(build_mask(self.layout, starts)), persistent=False)
 
     def forward(
         self,
@@ -245,3 +287,54 @@ class GPT(nn.Module):
             if j == keep_layer:
                 kept = x
         return self.ln_f(x), kept
+
+    # --- inference only (eval mode, no autograd): the same values as forward(), in fewer and cheaper ops ---
+    def inference_bias(self, valid: torch.Tensor | None = None, n_prev: torch.Tensor | None = None) -> torch.Tensor:
+        """Additive mask (B or 1, 1, L, L) of windows with left padding given as ``valid`` (B, T) bool or as
+        ``n_prev`` (B,) long, the number of earlier steps each window holds (>= T - 1: none padded)."""
+        if n_prev is not None:
+            return self.padded_bias[n_prev.clamp(max=self.layout.T - 1)]
+        if valid is not None:
+            return mask_to_bias(build_mask(self.layout, valid))
+        return self.base_bias
+
+    def embed(self, states: torch.Tensor, actions: torch.Tensor | None, timesteps: torch.Tensor) -> torch.Tensor:
+        """The input tokens (B, L, d) of :meth:`forward`, written in place into one buffer (no stack and cat)."""
+        B, T, _ = states.shape
+        lay = self.layout
+        C = lay.C
+        pos = F.embedding(timesteps.clamp(0, self.max_timestep - 1), self.global_emb.weight) + self.local_emb
+        x = torch.empty(B, lay.length, pos.shape[-1], dtype=pos.dtype, device=pos.device)
+        if C:
+            x[:, :C] = self.cot_tokens
+        if lay.use_actions:  # s0 a0 s1 a1 ... s(T-1): states at every second token, actions in between
+            torch.add(run_mlp(self.state_enc, states), pos, out=x[:, C::2])
+            if T > 1:
+                torch.add(run_mlp(self.action_enc, actions), pos[:, :-1], out=x[:, C + 1::2])
+        else:
+            torch.add(run_mlp(self.state_enc, states), pos, out=x[:, C:])
+        return x
+
+    def infer(self, states: torch.Tensor, actions: torch.Tensor | None, timesteps: torch.Tensor, bias: torch.Tensor,
+              rows=None, n_blocks: int | None = None) -> torch.Tensor:
+        """The raw output (no final LayerNorm) of block ``n_blocks - 1`` (default: the last) at token positions
+        ``rows`` (a tensor or a slice; None: all), computing only those tokens in that block. ``bias`` from
+        :meth:`inference_bias`."""
+        x = self.embed(states, actions, timesteps)
+        n = len(self.blocks) if n_blocks is None else n_blocks  # (slicing a ModuleList builds a new one)
+        for j in range(n):
+            x = self.blocks[j].infer(x, bias, rows if j == n - 1 else None)
+        return x
+
+
+def run_mlp(seq: nn.Sequential, x: torch.Tensor, n_layers: int | None = None) -> torch.Tensor:
+    """``seq[:n_layers](x)`` for an :func:`mlp`, calling the functions of its Linear and ReLU layers directly (at
+    batch 1 the module-call overhead is a visible part of each layer's cost; slicing a Sequential builds one)."""
+    for i, m in enumerate(seq):
+        if i == n_layers:
+            break
+        if isinstance(m, nn.Linear):
+            x = F.linear(x, m.weight, m.bias)
+        else:
+            x = F.relu(x) if isinstance(m, nn.ReLU) else m(x)
+    return x
