@@ -182,7 +182,7 @@ def test_ee_delta_pose_conversion(tmp_path):
 def test_reproduce_maniskill_end_to_end_and_resumes(stack_demos, tmp_path):
     import shutil
 
-    from cotpc.evaluation.reproduce_maniskill import ManiSkillStudySettings, run
+    from cotpc.studies.maniskill import ManiSkillStudySettings, run
 
     demos = tmp_path / "StackCube-v1" / "demos"
     shutil.copytree(stack_demos, demos)  # the fixture's 2 + 1 demos: generation finds them complete
@@ -213,7 +213,7 @@ def test_reproduce_maniskill_end_to_end_and_resumes(stack_demos, tmp_path):
 
 
 def test_maniskill_report_for_a_task_without_stage_flags(tmp_path):
-    from cotpc.evaluation.reproduce_maniskill import PAPER, write_report
+    from cotpc.studies.maniskill import PAPER, write_report
 
     stats = {"mean": 0.0, "std": 0.0, "best": 0.0, "runs": [0.0]}
     split = {**stats, "success_at_end": stats, "stages_once": {}, "max_normalized_reward": 0.25}

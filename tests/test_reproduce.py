@@ -84,6 +84,15 @@ def test_reproduce_parallel_jobs_and_checkpoint_curve(tmp_path):
     assert curve["iteration"] == list(range(1, 11))  # a checkpoint every tenth of the run
     assert len(curve["val"]) == len(curve["val_forgiving"]) == 10
     assert all(0 <= v <= 100 and abs(v * 3 / 100 - round(v * 3 / 100)) < 1e-9 for v in curve["val"])
+    # the paper's protocol: the best test success over runs x the last kept checkpoints, each evaluation on disk
+    protocol = results["cotpc"]["paper_protocol"]
+    last = protocol["runs"]["seed0"]
+    assert last["iteration"] == list(range(1, 11)) and protocol["best"] == max(last["unseen"])
+    for it, rate in zip(last["iteration"], last["unseen"]):
+        saved = json.loads((parallel / "runs" / "cotpc" / "seed0" / "checkpoints" / f"step_{it:07d}" /
+                            "eval_unseen.json").read_text())["summary"]
+        assert 100 * saved["success_rate"] == rate and saved["episodes"] == 2 and saved["deadly_gaps"]
+    assert "The paper's protocol" in (parallel / "report.md").read_text()
     assert (parallel / "val_success.png").exists() and "val_success.png" in (parallel / "report.md").read_text()
 
     # A finished run trained with other settings is an error, never reused as if it were the one asked for.

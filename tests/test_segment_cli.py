@@ -72,14 +72,15 @@ def test_errors_are_messages(tmp_path):
 
 
 def test_maze_defaults_key_steps_and_figures(tmp_path, capsys):
-    from cotpc.subskills import MAZE_DEFAULT_BETA, MAZE_DEFAULT_COST
+    from cotpc.envs import task_defaults
 
     h5, _ = make_file(tmp_path / "maze", env_id="cotpc/MovingMaze-v0", with_keys=True)
     segment_main([str(h5), "--plot", str(tmp_path / "fig"), "--num-plot", "2"], prog="cotpc segment")
     out = capsys.readouterr().out
     assert "precision" in out and "recall" in out
     ends, attrs = read_labels(h5)["traj_0"]
-    assert attrs["beta"] == MAZE_DEFAULT_BETA and attrs["cost"] == MAZE_DEFAULT_COST
+    maze = task_defaults("cotpc/MovingMaze-v0")
+    assert (attrs["beta"], attrs["cost"]) == (maze.beta, maze.cost) == (1.0, "sum-cosine")
     for name in ("subskills_similarity.png", "subskills_maze_paths.png"):
         png = tmp_path / "fig" / name
         assert png.stat().st_size > 5000 and png.read_bytes()[:4] == b"\x89PNG"

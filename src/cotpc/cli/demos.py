@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Optional
 
-import numpy as np
 import tyro
 
 
@@ -36,25 +34,10 @@ class MazeDemos:
 
 
 def run_maze(cfg: MazeDemos) -> dict[str, Path]:
-    from cotpc.data import save_trajectories
-    from cotpc.demos.maze import generate_splits
+    from cotpc.demos.maze import write_splits
 
-    start = time.perf_counter()
-    sets = generate_splits(cfg.train, cfg.test, seed=cfg.seed, workers=cfg.workers, num_val=cfg.val,
-                           landing=cfg.landing)
-    paths = {}
-    for split, trajectories in sets.items():
-        if len(trajectories) == 0:
-            continue
-        h5_path, _ = save_trajectories(cfg.out / split, trajectories)
-        lengths = np.array([ep.num_steps for ep in trajectories.episodes])
-        print(
-            f"{split}: {len(lengths)} demos -> {h5_path}  (steps mean {lengths.mean():.1f}, "
-            f"min {lengths.min()}, max {lengths.max()})"
-        )
-        paths[split] = h5_path
-    print(f"generated in {time.perf_counter() - start:.1f} s")
-    return paths
+    return write_splits(cfg.out, cfg.train, cfg.test, val=cfg.val, seed=cfg.seed, workers=cfg.workers,
+                        landing=cfg.landing)
 
 
 @dataclass
@@ -87,20 +70,10 @@ class ManiSkillDemos:
 
 
 def run_maniskill(cfg: ManiSkillDemos) -> dict[str, Path]:
-    from cotpc.demos.maniskill import generate_split  # imports mani_skill only here
-    from cotpc.envs.maniskill import import_maniskill
+    from cotpc.demos.maniskill import write_splits  # mani_skill is imported only here: an optional extra
 
-    import_maniskill()
-    start = time.perf_counter()
-    paths = {}
-    for split, num in (("train", cfg.num), ("test", cfg.test)):
-        if num > 0:
-            paths[split] = generate_split(
-                cfg.env, split, num, cfg.out, control_mode=cfg.control_mode, procs=cfg.procs, offset=cfg.offset,
-                max_attempts=cfg.max_attempts, progress=cfg.progress,
-            )
-    print(f"generated in {time.perf_counter() - start:.1f} s")
-    return paths
+    return write_splits(cfg.env, cfg.out, cfg.num, cfg.test, control_mode=cfg.control_mode, procs=cfg.procs,
+                        offset=cfg.offset, max_attempts=cfg.max_attempts, progress=cfg.progress)
 
 
 def main(argv: list[str], prog: str) -> None:

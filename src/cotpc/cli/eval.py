@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Optional
@@ -64,13 +63,14 @@ def _demos_and_weights(cfg: EvalConfig, info: dict) -> tuple[Path, Path]:
 
 def run_eval(cfg: EvalConfig) -> dict:
     from cotpc import load_policy
+    from cotpc.envs.moving_maze import ENV_ID as MAZE_ENV_ID
     from cotpc.envs.moving_maze import RULES
     from cotpc.evaluation.maze import eval_name, evaluate
     from cotpc.policies.policy import read_config
 
     info = read_config(cfg.run)
-    env_id = info.get("dataset", {}).get("env_id", "cotpc/MovingMaze-v0")
-    if env_id != "cotpc/MovingMaze-v0":
+    env_id = info.get("dataset", {}).get("env_id", MAZE_ENV_ID)
+    if env_id != MAZE_ENV_ID:
         from cotpc.envs.maniskill import is_maniskill_env
 
         if is_maniskill_env(env_id):

@@ -1,4 +1,4 @@
-"""``cotpc reproduce {maze,maniskill}``: a whole study in one command (see cotpc/evaluation/reproduce*.py)."""
+"""``cotpc reproduce {maze,maniskill}``: a whole study in one command (see cotpc/studies/)."""
 
 from __future__ import annotations
 
@@ -110,8 +110,8 @@ def main(argv: list[str], prog: str) -> None:
                                                prog=prog)
     if isinstance(cfg, ManiSkillReproduce):
         return main_maniskill(cfg)
-    from cotpc.evaluation.reproduce import ABLATIONS, BASELINES, ReproduceSettings, run
-    from cotpc.subskills import MAZE_DEFAULT_BETA, MAZE_DEFAULT_COST
+    from cotpc.studies.maze import ABLATIONS, BASELINES, ReproduceSettings, run
+    from cotpc.envs.moving_maze import SPEC
 
     quick = QUICK if cfg.quick else {}
     settings = ReproduceSettings(
@@ -120,8 +120,8 @@ def main(argv: list[str], prog: str) -> None:
         iters=cfg.iters or quick.get("iters", FULL_ITERS),
         policies=tuple(cfg.policies or quick.get("policies", BASELINES)),
         ablations=tuple(cfg.ablations if cfg.ablations is not None else quick.get("ablations", ABLATIONS)),
-        beta=cfg.beta if cfg.beta is not None else MAZE_DEFAULT_BETA,
-        cost=cfg.cost or MAZE_DEFAULT_COST,
+        beta=cfg.beta if cfg.beta is not None else SPEC.defaults.beta,
+        cost=cfg.cost or SPEC.defaults.cost,
         train_demos=cfg.train_demos,
         test_demos=cfg.test_demos,
         val_demos=cfg.val_demos,
@@ -145,7 +145,7 @@ def main(argv: list[str], prog: str) -> None:
 
 
 def main_maniskill(cfg: ManiSkillReproduce) -> None:
-    from cotpc.evaluation.reproduce_maniskill import ManiSkillStudySettings, run
+    from cotpc.studies.maniskill import ManiSkillStudySettings, run
 
     results = run(ManiSkillStudySettings(
         out=cfg.out, envs=tuple(cfg.envs), policies=tuple(cfg.policies), seeds=cfg.seeds, iters=cfg.iters,

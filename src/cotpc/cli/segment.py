@@ -21,11 +21,11 @@ class Config:
     data: tyro.conf.Positional[Path]
     """Trajectory file (NAME.h5, with NAME.json beside it)."""
     beta: float | None = None
-    """Penalty per subskill. Default: cotpc.subskills.MAZE_DEFAULT_BETA for Moving Maze data, else the paper's
+    """Penalty per subskill. Default: the task's (cotpc.envs.task_defaults): 1.0 for Moving Maze data, else the paper's
     single-arm 0.05."""
     cost: Cost | None = None
     """Segment cost: 'mean-cosine' is the paper's (mean cosine distance to the segment mean); 'sum-cosine' is n
-    times that. Default: cotpc.subskills.MAZE_DEFAULT_COST for Moving Maze data, else 'mean-cosine'."""
+    times that. Default: the task's, sum-cosine for Moving Maze data, else 'mean-cosine'."""
     min_size: int = 1
     """Minimum number of actions per subskill."""
     plot: Path | None = None
@@ -48,12 +48,11 @@ class Config:
 
 
 def defaults_for(env_id: str | None, beta: float | None, cost: str | None) -> tuple[float, str]:
-    """Fill unset beta / cost: the maze's chosen pair for Moving Maze data, the paper's otherwise."""
-    from cotpc.subskills import MAZE_DEFAULT_BETA, MAZE_DEFAULT_COST, PAPER_BETA
+    """Fill unset beta / cost with the task's defaults (cotpc.envs.task_defaults)."""
+    from cotpc.envs.spec import task_defaults
 
-    if env_id == "cotpc/MovingMaze-v0":
-        return (MAZE_DEFAULT_BETA if beta is None else beta), (MAZE_DEFAULT_COST if cost is None else cost)
-    return (PAPER_BETA if beta is None else beta), ("mean-cosine" if cost is None else cost)
+    defaults = task_defaults(env_id)
+    return (defaults.beta if beta is None else beta), (defaults.cost if cost is None else cost)
 
 
 def format_summary(path: Path, s: dict) -> str:
@@ -114,7 +113,8 @@ def run(cfg: Config) -> dict:
         summary, ends = label_file(cfg.data, beta, cfg.min_size, cost, cfg.tol, trajectories=ts)
     print(json.dumps(summary, indent=1) if cfg.json else format_summary(cfg.data, summary))
     if cfg.plot is not None:
-        from cotpc.subskills.plots import MAZE_ENV_ID, plot_maze_paths, plot_similarity_maps
+        from cotpc.envs.moving_maze import ENV_ID as MAZE_ENV_ID
+        from cotpc.subskills.plots import plot_maze_paths, plot_similarity_maps
 
         k = min(cfg.num_plot, len(episodes))
         titles = [f"traj_{ep.episode_id}: {len(e)} subskills" for ep, e in zip(episodes[:k], ends[:k])]

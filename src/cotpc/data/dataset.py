@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from cotpc.data.targets import cot_targets
 from cotpc.data.trajectories import TrajectorySet
 
 
@@ -58,8 +59,6 @@ def episode_cot_targets(ep, targets: tuple[str, ...], rng: np.random.Generator, 
                 f"{where}: episode {ep.episode_id} has no subskill_ends, which this policy needs as CoT targets; "
                 f"run `cotpc segment DATA.h5 --beta 0.05` (0.02 for dual-arm tasks) on the data file first"
             )
-        from cotpc.subskills import cot_targets
-
         nxt, last = cot_targets(ep.obs, ep.extras["subskill_ends"])
     n = ep.num_steps
     for name in targets:

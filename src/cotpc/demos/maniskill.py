@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from cotpc.data.trajectories import Episode, TrajectoryFormatError, TrajectorySet, load_trajectories, save_trajectories
-from cotpc.envs.maniskill import CONTROL_MODES, HORIZONS, SEEDS
+from cotpc.envs.maniskill import CONTROL_MODES, HORIZONS, SEEDS, import_maniskill
 
 PLAN_CONTROL_MODE = "pd_joint_pos"
 PLAN_STEP_LIMIT = 1000  # no time limit interferes with planning or conversion (planner demos are ~100-300 steps)
@@ -296,3 +296,19 @@ def generate_split(
         f"{tried} seeds tried ({len(failed)} failed), steps mean {lengths.mean():.1f} min {lengths.min()} max {lengths.max()}"
     )
     return final.with_suffix(".h5")
+
+
+def write_splits(env_id: str, out: Path, num: int, test: int, control_mode: str = "pd_joint_delta_pos",
+                 procs: int = 1, offset: int = 0, max_attempts: int | None = None,
+                 progress: bool = True) -> dict[str, Path]:
+    """``num`` training and ``test`` test demos of ``env_id`` (:func:`generate_split`), written to
+    ``out/{train,test}.{h5,json}``; resumes or extends what is there. Returns the paths."""
+    import_maniskill()
+    start = time.perf_counter()
+    paths = {}
+    for split, n in (("train", num), ("test", test)):
+        if n > 0:
+            paths[split] = generate_split(env_id, split, n, out, control_mode=control_mode, procs=procs,
+                                          offset=offset, max_attempts=max_attempts, progress=progress)
+    print(f"generated in {time.perf_counter() - start:.1f} s")
+    return paths

@@ -22,11 +22,12 @@ from __future__ import annotations
 import functools
 
 import time
+from pathlib import Path
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from cotpc.data.trajectories import Episode, TrajectorySet
+from cotpc.data.trajectories import Episode, TrajectorySet, save_trajectories
 from cotpc.envs.moving_maze import (
     BLOCK,
     BRIDGE1_X_RANGE,
@@ -44,6 +45,7 @@ from cotpc.envs.moving_maze import (
     WIDTH,
     MazeConfig,
     MazeRules,
+    SPEC,
     MovingMazeBatch,
     check_seed,
     region_of,
@@ -51,7 +53,7 @@ from cotpc.envs.moving_maze import (
 
 MAX_LEG_STEPS = 13  # paper: at most 13 steps per region transition
 STEP_MAGNITUDE = (1.5, 4.0)  # paper: action components in [1.5, 4]
-ENV_ID = "cotpc/MovingMaze-v0"
+ENV_ID = SPEC.env_id
 
 
 @dataclass
@@ -288,3 +290,20 @@ def generate_splits(
     for s in sets.values():
         s.meta["generation_seconds_total"] = round(time.perf_counter() - start, 3)
     return sets
+
+
+def write_splits(out: Path, train: int, test: int, val: int = 0, seed: int = 0, workers: int = 1,
+                 landing: str = "observed") -> dict[str, Path]:
+    """Generate the splits (:func:`generate_splits`) and write each as ``out/<split>.{h5,json}``; prints a line
+    per split. Returns the paths of the files written."""
+    start = time.perf_counter()
+    sets = generate_splits(train, test, seed=seed, workers=workers, num_val=val, landing=landing)
+    paths = {}
+    for split, trajectories in sets.items():
+        h5_path, _ = save_trajectories(Path(out) / split, trajectories)
+        lengths = np.array([ep.num_steps for ep in trajectories.episodes])
+        print(f"{split}: {len(lengths)} demos -> {h5_path}  (steps mean {lengths.mean():.1f}, "
+              f"min {lengths.min()}, max {lengths.max()})")
+        paths[split] = h5_path
+    print(f"generated in {time.perf_counter() - start:.1f} s")
+    return paths

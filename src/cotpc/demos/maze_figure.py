@@ -1,4 +1,4 @@
-"""Figure of Moving Maze configurations with demo paths: ``python -m cotpc.envs.maze_figure OUT.png``.
+"""Figure of Moving Maze configurations with demo paths: ``python -m cotpc.demos.maze_figure OUT.png``.
 
 Each panel is one training configuration: islands (blue), the blocks at their initial positions (green, the
 target gold), the band each moving block travels (light green), and the demo path coloured by region with the

@@ -1,12 +1,15 @@
-"""Environments. Importing this module registers ``cotpc/MovingMaze-v0`` with gymnasium."""
+"""Environments. Importing this module registers ``cotpc/MovingMaze-v0`` with gymnasium, and every environment's
+:class:`~cotpc.envs.spec.EnvSpec` (Moving Maze, the ManiSkill3 tasks) with :mod:`cotpc.envs.spec`."""
 
 import gymnasium as gym
 
-from cotpc.envs.moving_maze import MazeConfig, MovingMazeBatch, MovingMazeEnv, sample_config
-
-MAZE_ENV_ID = "cotpc/MovingMaze-v0"
+from cotpc.envs import maniskill  # noqa: F401  (registers the ManiSkill3 specs; mani_skill itself is not imported)
+from cotpc.envs.moving_maze import ENV_ID as MAZE_ENV_ID
+from cotpc.envs.moving_maze import HORIZON, MazeConfig, MovingMazeBatch, MovingMazeEnv, sample_config
+from cotpc.envs.spec import EnvSpec, SeedRanges, TaskDefaults, env_spec, task_defaults
 
 if MAZE_ENV_ID not in gym.registry:
-    gym.register(id=MAZE_ENV_ID, entry_point="cotpc.envs.moving_maze:MovingMazeEnv", max_episode_steps=60)
+    gym.register(id=MAZE_ENV_ID, entry_point="cotpc.envs.moving_maze:MovingMazeEnv", max_episode_steps=HORIZON)
 
-__all__ = ["MAZE_ENV_ID", "MazeConfig", "MovingMazeBatch", "MovingMazeEnv", "sample_config"]
+__all__ = ["MAZE_ENV_ID", "EnvSpec", "MazeConfig", "MovingMazeBatch", "MovingMazeEnv", "SeedRanges", "TaskDefaults",
+           "env_spec", "sample_config", "task_defaults"]

@@ -25,9 +25,12 @@ from dataclasses import asdict, dataclass
 import gymnasium as gym
 import numpy as np
 
+from cotpc.envs.spec import DEFAULT_SEEDS, EnvSpec, TaskDefaults, register
+
 WIDTH, HEIGHT = 60.0, 80.0
 MAX_ACTION = 4.0  # each action component is clipped to [-4, 4]
 PAPER_MIN_ACTION = 1.5  # the paper: "both components in [1.5, 4]" (the default min_action rule)
+ENV_ID = "cotpc/MovingMaze-v0"
 HORIZON = 60  # evaluation horizon (paper: "maximum number of steps as 60")
 BLOCK = 10.0  # squares and bridges are 10 x 10
 SPEED_RANGE = (1.0, 2.0)
@@ -57,7 +60,11 @@ NUM_REGIONS = 6
 ISLAND_SPLIT_X = (25.0, 30.0, 35.0)  # top, middle, bottom
 
 # Seeds of configurations: disjoint ranges per split, enforced by seeds_for / check_seed.
-SEED_RANGES = {"train": (0, 1_000_000), "val": (1_000_000, 2_000_000), "test": (2_000_000, 3_000_000)}
+SEEDS = DEFAULT_SEEDS
+SEED_RANGES = SEEDS.ranges
+seeds_for = SEEDS.seeds  # num configuration seeds of a split, starting offset into its range
+split_of_seed = SEEDS.split_of
+check_seed = SEEDS.check  # raise unless the seed belongs to the split (keeps train, val and test disjoint)
 OBS_DIM, ACTION_DIM = 10, 2
 LANDING_RULES = ("observed", "moved")  # when the blocks move within a step (see MovingMazeBatch)
 
@@ -92,27 +99,6 @@ RULES = {
     "safe-gaps": MazeRules(deadly_gaps=False, min_action=PAPER_MIN_ACTION),  # a step into a gap is blocked
     "forgiving": MazeRules(deadly_gaps=False, min_action=0.0),  # both (this project's default before 2026-12)
 }
-
-
-def seeds_for(split: str, num: int, offset: int = 0) -> np.ndarray:
-    """``num`` configuration seeds of ``split``, starting ``offset`` into that split's range."""
-    lo, hi = SEED_RANGES[split]
-    if offset < 0 or lo + offset + num > hi:
-        raise ValueError(f"{num} seeds at offset {offset} do not fit the {split} range [{lo}, {hi})")
-    return np.arange(lo + offset, lo + offset + num)
-
-
-def split_of_seed(seed: int) -> str:
-    for split, (lo, hi) in SEED_RANGES.items():
-        if lo <= seed < hi:
-            return split
-    raise ValueError(f"seed {seed} is outside every split range {SEED_RANGES}")
-
-
-def check_seed(seed: int, split: str) -> None:
-    """Raise unless ``seed`` belongs to ``split`` (keeps train, validation and test configs disjoint)."""
-    if split_of_seed(seed) != split:
-        raise ValueError(f"seed {seed} belongs to the {split_of_seed(seed)} split, not {split}")
 
 
 @dataclass
@@ -471,3 +457,13 @@ def render_frame(
     cx, cy = agent[0] * scale, h - agent[1] * scale
     img[(xx - cx) ** 2 + (yy - cy) ** 2 <= (1.5 * scale) ** 2] = COLORS["agent"]
     return img
+
+
+# What the rest of the package knows about Moving Maze (cotpc.envs.spec). Context 20 is the paper's. K = 1024 is
+# the paper's maze BeT for its 200K iterations (short schedules choose 128 on validation configs:
+# docs/results/maze.md). Subskills: sum-cosine cost with beta 1.0, chosen from the key-step recovery table in
+# docs/subskills.md (never from policy success). The paper's Table 1 (unseen configs, success %).
+SPEC = register(EnvSpec(
+    ENV_ID, HORIZON, TaskDefaults(context=20, n_centres=1024, beta=1.0, cost="sum-cosine"), SEEDS,
+    paper_success={"bc": 9.0, "dt": 23.0, "bet": 33.0, "cotpc": 44.0},
+))

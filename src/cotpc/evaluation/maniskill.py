@@ -32,7 +32,7 @@ import numpy as np
 
 from cotpc.data.trajectories import load_trajectories
 from cotpc.envs.maniskill import HORIZONS, SEEDS
-from cotpc.evaluation.maze import wilson_interval
+from cotpc.evaluation.stats import wilson_interval
 
 SPLIT_FILES = {"seen": ("train", "train"), "unseen": ("test", "test")}  # split -> (demo file, seed range)
 # ManiSkill3's staged dense reward scaled to [0, 1]: its maximum over an episode measures progress short of success.

@@ -7,7 +7,6 @@ A policy is anything with ``reset()`` and ``select_action(obs: (B, q)) -> (B, p)
 from __future__ import annotations
 
 import json
-import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -16,22 +15,13 @@ import numpy as np
 
 from cotpc.data.trajectories import load_trajectories
 from cotpc.envs.moving_maze import (
-    HORIZON, PAPER_MIN_ACTION, MazeConfig, MazeRules, MovingMazeBatch, check_seed, render_frame,
+    ENV_ID, HORIZON, PAPER_MIN_ACTION, MazeConfig, MazeRules, MovingMazeBatch, check_seed, render_frame,
 )
+from cotpc.evaluation.stats import wilson_interval
 
 # Which demo file holds each split's configurations, and the seed range they must come from. "val" configs are
 # for choosing settings and checkpoints; "unseen" (test) configs only for the final numbers.
 SPLIT_FILES = {"seen": ("train", "train"), "val": ("val", "val"), "unseen": ("test", "test")}
-
-
-def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    """95% Wilson score interval for a success rate (well-behaved at 0% and 100%, unlike the normal one)."""
-    if n == 0:
-        return (0.0, 1.0)
-    p = successes / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return (max(0.0, centre - half), min(1.0, centre + half))
 
 
 def load_split_configs(demo_dir: str | Path, split: str, episodes: int | None = None) -> tuple[list[MazeConfig], list[int]]:
@@ -50,7 +40,7 @@ def _load_split(demo_dir: str | Path, split: str, episodes: int | None) -> tuple
         hint = " (generate them with `cotpc demos maze --val N`)" if split == "val" else ""
         raise FileNotFoundError(f"no {split} configs: {Path(demo_dir) / f'{name}.h5'} does not exist{hint}")
     data = load_trajectories(Path(demo_dir) / f"{name}.h5", extras=())
-    if data.env_info.get("env_id") != "cotpc/MovingMaze-v0":
+    if data.env_info.get("env_id") != ENV_ID:
         raise ValueError(f"{demo_dir}/{name}.json is for {data.env_info.get('env_id')!r}, not Moving Maze")
     chosen = data.episodes[:episodes] if episodes else data.episodes
     configs, seeds = [], []

@@ -1,6 +1,6 @@
 """Policies: the CoTPC transformer, its baselines and ablations as configurations, and the inference wrapper."""
 
-from cotpc.policies.config import PRESETS, PolicyConfig, get_preset, task_defaults
+from cotpc.policies.config import PRESETS, PolicyConfig, get_preset
 from cotpc.policies.model import MLPPolicy, TransformerPolicy, make_model
 from cotpc.policies.policy import CheckpointError, Policy, load_model, load_policy, save_checkpoint
 
@@ -16,5 +16,4 @@ __all__ = [
     "load_policy",
     "make_model",
     "save_checkpoint",
-    "task_defaults",
 ]

@@ -169,10 +169,3 @@ def get_preset(name: str, **overrides) -> PolicyConfig:
         raise ValueError(f"unknown policy {name!r}; choose one of {', '.join(PRESETS)}")
     overrides = {k: v for k, v in overrides.items() if v is not None}
     return PRESETS[name].replace(**overrides)
-
-
-def task_defaults(env_id: str | None) -> dict:
-    """Paper settings that depend on the task: context size and number of k-means centres."""
-    if env_id and "maze" in env_id.lower():
-        return {"context": 20, "n_centres": 1024}
-    return {"context": 10, "n_centres": 128}

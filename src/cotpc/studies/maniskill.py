@@ -1,7 +1,7 @@
 """``cotpc reproduce maniskill``: planner demos -> subskills -> training -> seen/unseen evaluation -> report,
 for each ManiSkill3 task, in one command.
 
-The layout and rules are those of ``cotpc reproduce maze`` (cotpc/evaluation/reproduce.py): every step writes
+The layout and rules are those of ``cotpc reproduce maze`` (cotpc/studies/maze.py, cotpc/studies/runs.py): every step writes
 into ``OUT/<task>/`` and is skipped when its output is complete (demo generation and training resume), and the
 evaluated weights are the final ones of a fixed schedule, never selected on evaluation success.
 """
@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cotpc.evaluation.reproduce import _cpu_count, _fresh_eval, _stats, plot_learning_curves, train_run
+from cotpc.envs.spec import task_defaults
+from cotpc.studies.runs import cpu_count, fresh_eval, plot_learning_curves, stats, train_run
 
 # The paper's Table 2 (ManiSkill2, state observations, success %). Its Stack Cube number is on unseen configs;
 # its Peg Insertion number is "0-shot" (unseen peg/hole geometries). ManiSkill3's PegInsertionSide-v1 draws the
@@ -49,8 +50,7 @@ class ManiSkillStudySettings:
 
 
 def run(s: ManiSkillStudySettings) -> dict:
-    from cotpc.cli.demos import ManiSkillDemos, run_maniskill
-    from cotpc.cli.segment import defaults_for
+    from cotpc.demos.maniskill import write_splits  # mani_skill is imported only here: an optional extra
     from cotpc.envs.maniskill import HORIZONS, import_maniskill
     from cotpc.evaluation.maniskill import evaluate, policy_loader
     from cotpc.subskills.labeling import label_file
@@ -70,9 +70,10 @@ def run(s: ManiSkillStudySettings) -> dict:
         demos = task / "demos"
         num = demo_counts[env_id]
         print(f"[1/4] {env_id}: {num} train + {s.test} test planner demos -> {demos}", flush=True)
-        run_maniskill(ManiSkillDemos(env=env_id, out=demos, num=num, test=s.test, control_mode=s.control_mode,
-                                     procs=s.procs, progress=sys.stderr.isatty()))
-        beta, cost = defaults_for(env_id, s.beta, None)  # the paper's single-arm setting
+        write_splits(env_id, demos, num, s.test, control_mode=s.control_mode, procs=s.procs,
+                     progress=sys.stderr.isatty())
+        defaults = task_defaults(env_id)  # the paper's single-arm setting
+        beta, cost = (defaults.beta if s.beta is None else s.beta), defaults.cost
         print(f"[2/4] {env_id}: subskill discovery, {cost} cost, beta={beta}", flush=True)
         subskills[env_id], _ = label_file(demos / "train.h5", beta=beta, min_size=1, cost=cost)
         results[env_id] = {}
@@ -108,7 +109,7 @@ def run(s: ManiSkillStudySettings) -> dict:
         "subskills": subskills,
         "versions": {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
                      "mani_skill": _version("mani_skill"), "sapien": _version("sapien")},
-        "hardware": {"machine": platform.machine(), "processor": platform.processor(), "cpus": _cpu_count(),
+        "hardware": {"machine": platform.machine(), "processor": platform.processor(), "cpus": cpu_count(),
                      "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None},
         "wall_seconds": round(time.perf_counter() - t_start, 1),  # this invocation (finished steps are reused)
         "train_seconds": timings,
@@ -124,8 +125,8 @@ def run(s: ManiSkillStudySettings) -> dict:
 def _aggregate(summaries: list[dict]) -> dict:
     """Per-seed evaluation summaries -> success % over seeds, stage flags % and max reward (means over seeds)."""
     return {
-        **_stats([100 * x["success_once"] for x in summaries]),
-        "success_at_end": _stats([100 * x["success_at_end"] for x in summaries]),
+        **stats([100 * x["success_once"] for x in summaries]),
+        "success_at_end": stats([100 * x["success_at_end"] for x in summaries]),
         "stages_once": {k: 100 * float(np.mean([x["stages_once"][k] for x in summaries]))
                         for k in summaries[0]["stages_once"]},
         "max_normalized_reward": float(np.mean([x["mean_max_normalized_reward"] for x in summaries])),
@@ -144,7 +145,7 @@ def _version(module: str) -> str | None:
 def _cached_eval(run_dir: Path, split: str, horizon: int, episodes: int | None) -> dict | None:
     """The summary of ``eval_<split>.json`` if it was written after the current weights with this horizon and
     number of episodes (the seeds of a split are fixed by its demo file); else None (evaluate again)."""
-    saved = _fresh_eval(run_dir, f"eval_{split}.json")
+    saved = fresh_eval(run_dir, f"eval_{split}.json")
     summary = saved.get("summary") if isinstance(saved, dict) else None
     if not isinstance(summary, dict):
         return None

@@ -13,17 +13,12 @@ from cotpc.subskills.discovery import (
     discover_batch,
     objective,
 )
-from cotpc.subskills.targets import cot_targets, key_state_indices
+from cotpc.data.targets import cot_targets, key_state_indices  # where training windows read them
 
-PAPER_BETA = 0.05  # the paper's beta for single-arm tasks (0.02 for dual-arm)
-# Moving Maze defaults, chosen from the key-step recovery table in docs/subskills.md (never from policy success).
-MAZE_DEFAULT_COST = "sum-cosine"
-MAZE_DEFAULT_BETA = 1.0
+PAPER_BETA = 0.05  # the paper's beta for single-arm tasks (0.02 for dual-arm); each task's own: cotpc.envs
 
 __all__ = [
     "COSTS",
-    "MAZE_DEFAULT_BETA",
-    "MAZE_DEFAULT_COST",
     "PAPER_BETA",
     "ZERO_ACTION_RTOL",
     "ZERO_MEAN_RTOL",

@@ -44,7 +44,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import torch
 
-from cotpc.subskills.targets import check_ends
+from cotpc.data.targets import check_ends
 
 ZERO_ACTION_RTOL = 1e-12  # |v| <= this * max |v| counts as a zero action
 ZERO_MEAN_RTOL = 1e-6  # |sum v| <= this * sum |v| counts as a zero segment mean

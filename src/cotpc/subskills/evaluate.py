@@ -1,7 +1,7 @@
 """How well discovered subskill boundaries recover privileged key steps (Moving Maze region entries).
 
 Both sides are *state* indices: a discovered segment ending at action ``c_i`` gives the boundary state
-``c_i + 1`` (see :mod:`cotpc.subskills.targets`), and ``key_steps`` are the first states inside each new region.
+``c_i + 1`` (see :mod:`cotpc.data.targets`), and ``key_steps`` are the first states inside each new region.
 The final state ``N`` (end of the last segment) is not a boundary: every segmentation has it.
 
 A predicted boundary matches a true one when they are at most ``tol`` steps apart, one-to-one (maximum matching;

@@ -12,9 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from cotpc.subskills.discovery import _unit  # noqa: E402
-from cotpc.subskills.targets import key_state_indices  # noqa: E402
-
-MAZE_ENV_ID = "cotpc/MovingMaze-v0"
+from cotpc.data.targets import key_state_indices  # noqa: E402
 
 
 def cosine_similarity_map(actions: np.ndarray) -> np.ndarray:

@@ -19,7 +19,6 @@ import math
 import os
 import sys
 import time
-from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, Optional
@@ -31,7 +30,8 @@ import torch.nn as nn
 
 from cotpc.data.dataset import Stats, WindowDataset, split_episodes
 from cotpc.data.trajectories import load_trajectories
-from cotpc.policies.config import PRESETS, get_preset, task_defaults
+from cotpc.envs.spec import task_defaults
+from cotpc.policies.config import PRESETS, get_preset
 from cotpc.policies.kmeans import kmeans
 from cotpc.policies.model import make_model
 from cotpc.policies.policy import CheckpointError, config_to_dict, load_state, save_checkpoint
@@ -55,7 +55,8 @@ class TrainConfig:
     seed: int = 0
     """Seed for the train/val split, k-means, initialisation and batch sampling."""
     context: Optional[int] = None
-    """Context size T (default: 20 for Moving Maze, 10 otherwise, as in the paper)."""
+    """Context size T (default: the task's, cotpc.envs.task_defaults: 20 for Moving Maze, 10 otherwise, as in the
+    paper)."""
     batch_size: Optional[int] = None
     """Global batch size (default: the preset's, 256; 32 for bc)."""
     lr: Optional[float] = None
@@ -67,7 +68,7 @@ class TrainConfig:
     weight_decay: Optional[float] = None
     """AdamW weight decay of the matrices (default 1e-4; 0 for bc)."""
     n_centres: Optional[int] = None
-    """k-means centres K for bet/cotpc (default: 1024 maze, 128 otherwise)."""
+    """k-means centres K for bet/cotpc (default: the task's, 1024 maze, 128 otherwise)."""
     cot_layer: Optional[int] = None
     """Block whose CoT features feed the CoT decoder (default -1, the last)."""
     d_model: Optional[int] = None
@@ -272,8 +273,8 @@ def train(config: TrainConfig) -> Path:
     defaults = task_defaults(env_id)
     cfg = get_preset(
         config.policy,
-        context=config.context or defaults["context"],
-        n_centres=config.n_centres or defaults["n_centres"],
+        context=config.context or defaults.context,
+        n_centres=config.n_centres or defaults.n_centres,
         batch_size=config.batch_size, lr=config.lr, min_lr=config.min_lr, warmup_iters=config.warmup_iters,
         weight_decay=config.weight_decay, cot_layer=config.cot_layer, d_model=config.d_model,
         n_layers=config.n_layers, n_heads=config.n_heads, dropout=config.dropout,

@@ -1,0 +1,182 @@
+"""The machinery every study shares: train a grid of policies x seeds into ``OUT/runs/<policy>/seed<k>/``,
+reusing finished runs and resuming interrupted ones (a run on disk trained with other settings is an error),
+several at once (``--jobs``); cached evaluations that are reused while they are newer than the weights; the
+statistics over seeds, and the training curves read back from TensorBoard."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+# The paper reports the best of 3 runs over the last 20 checkpoints (ManiSkill2; the protocol of Diffusion Policy).
+# With --keep-checkpoints a run keeps this many, evenly spaced over its schedule.
+PROTOCOL_CHECKPOINTS = 20
+
+
+def stats(rates: list[float]) -> dict:
+    a = np.array(rates, dtype=float)
+    return {"mean": float(a.mean()), "std": float(a.std(ddof=0)), "best": float(a.max()), "runs": [float(r) for r in a]}
+
+
+def _train_worker(args: tuple) -> tuple[str, int, float | None]:
+    run_dir, data, name, seed, iters, extra = args
+    return name, seed, train_run(run_dir, data, name, seed, iters, extra, step="[3/5]")
+
+
+def train_parallel(out: Path, data: Path, runs: list[tuple[str, int]], iters: int, extra_train_args: dict,
+                   jobs: int) -> None:
+    """Train the unfinished ``runs`` in ``jobs`` processes at once. One small model leaves a GPU (or a many-core
+    CPU) mostly idle, so independent runs in parallel finish the study several times sooner. Each process gets
+    cores / jobs threads; the runs are the same as trained one by one with that thread count."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    todo = [(name, seed) for name, seed in runs if not finished(
+        out / "runs" / name / f"seed{seed}", iters, {"policy": name, "seed": seed, **extra_train_args})]
+    if not todo:
+        return
+    extra = {**extra_train_args, "threads": extra_train_args.get("threads") or max(1, cpu_count() // jobs)}
+    print(f"[3/5] training {len(todo)} runs, {jobs} at a time", flush=True)
+    # spawn: a forked child must not inherit CUDA or OpenMP state
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
+        args = [(out / "runs" / name / f"seed{seed}", data, name, seed, iters, extra) for name, seed in todo]
+        for name, seed, seconds in pool.map(_train_worker, args):
+            print(f"[3/5] done: {name} seed {seed} ({seconds} s)", flush=True)
+
+
+def policy_loader(run_dir: Path, device: str):
+    """A function that loads the run's policy on its first call only (no load when every evaluation is cached)."""
+    import functools
+
+    from cotpc import load_policy
+
+    return functools.cache(lambda: load_policy(run_dir, device=device))
+
+
+def cpu_count() -> int:
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def fresh_eval(run_dir: Path, name: str) -> dict | None:
+    """``run_dir/name`` parsed, if it exists and was written after the run's current weights; else None."""
+    path, weights = run_dir / name, run_dir / "model.safetensors"
+    if not path.exists() or path.stat().st_mtime_ns < weights.stat().st_mtime_ns:
+        return None
+    try:
+        return json.loads(path.read_text())
+    except ValueError:
+        return None
+
+
+def train_run(run_dir: Path, data: Path, policy: str, seed: int, iters: int, extra_train_args: dict,
+              step: str = "") -> float | None:
+    """Train ``policy`` into ``run_dir`` unless a finished run of ``iters`` iterations is there (resuming an
+    interrupted one). Returns the training seconds measured when the run was trained (maybe by an earlier call)."""
+    from cotpc.training.train import TrainConfig, train
+
+    t0 = time.perf_counter()
+    if not finished(run_dir, iters, {"policy": policy, "seed": seed, **extra_train_args}):
+        print(f"{step} train {policy} seed {seed} ({iters} iters) -> {run_dir}".strip(), flush=True)
+        cfg = TrainConfig(
+            data=data,
+            policy=policy,
+            out=run_dir,
+            iters=iters,
+            seed=seed,
+            resume=(run_dir / "training_state.pt").exists(),
+            progress=sys.stderr.isatty(),
+            val_every=max(iters // 10, 1),  # ten points on the learning curve
+            # a killed study loses at most a tenth of one run; kept checkpoints: the paper's protocol's 20
+            ckpt_every=max(iters // (PROTOCOL_CHECKPOINTS if extra_train_args.get("keep_checkpoints") else 10), 1),
+            **extra_train_args,
+        )
+        train(cfg)
+        (run_dir / "timing.json").write_text(json.dumps({"train_seconds": round(time.perf_counter() - t0, 1)}))
+    timing = run_dir / "timing.json"
+    return json.loads(timing.read_text())["train_seconds"] if timing.exists() else None
+
+
+# Train settings that do not change what a run learns (where it ran, how it reports): ignored when a run on disk
+# is compared with the one a study asks for.
+RUN_ONLY = {"data", "out", "resume", "device", "threads", "progress", "keep_checkpoints", "val_every", "ckpt_every",
+             "log_every", "stop_after", "bf16"}
+
+
+def finished(run_dir: Path, iters: int, wanted: dict | None = None) -> bool:
+    """Whether ``run_dir`` holds a finished run of ``iters`` iterations. A run on disk trained with other settings
+    than ``wanted`` (TrainConfig fields) is an error, not something to reuse or resume silently."""
+    cfg = run_dir / "config.json"
+    if not cfg.exists():
+        return False
+    info = json.loads(cfg.read_text())
+    saved = info.get("train", {})
+    wanted = {"iters": iters, **(wanted or {})}
+    ignore = set(RUN_ONLY)
+    if "policy" in wanted:
+        from cotpc.policies.config import get_preset
+
+        preset = get_preset(wanted["policy"])
+        if preset.action_head != "bet":
+            ignore.add("n_centres")  # no k-means head: K changes nothing (BC/DT runs serve studies with any K)
+        if not preset.cot_targets:
+            ignore.add("cot_weight")  # no CoT loss: its weight changes nothing
+    diff = {k: (saved.get(k), v) for k, v in wanted.items() if k not in ignore and saved.get(k) != v}
+    if diff:
+        raise ValueError(f"{run_dir} holds a run trained with other settings (saved, asked for): {diff}. "
+                         "Use another --out, or delete that run to train it again.")
+    return info.get("step") == iters
+
+
+def plot_learning_curves(runs: Path, names: list[str], path: Path) -> Path:
+    """BC loss of ``runs/<name>/seed0`` for each name (from TensorBoard logs), one panel per policy (the losses
+    of MSE and centre/offset heads are not on one scale): in training (all window positions, random CoT mask)
+    and on validation windows at the last position, as at inference (``val/last_bc``). Runs logged before the
+    last-position metrics existed fall back to their all-position ``val/bc``, labelled so."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    cols = min(4, len(names))
+    rows = (len(names) + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(3.0 * cols, 2.4 * rows), squeeze=False)
+    for ax, n in zip(axes.flat, names):
+        logdir = runs / n / "seed0" / "tb"
+        for tags, style, label in ((("train/bc",), "-", "train (all positions)"),
+                                   (("val/last_bc", "val/bc"), "o-", "val (last position)")):
+            for tag in tags:
+                steps, values = _scalar(logdir, tag)
+                if steps:
+                    ax.plot(steps, values, style, ms=3, label=label if tag != "val/bc" else "val (all positions)")
+                    break
+        ax.set_title(n, fontsize=9)
+        ax.set_xlabel("iteration", fontsize=8)
+        ax.tick_params(labelsize=7)
+        if ax.get_lines():  # a run without logs has nothing to label
+            ax.legend(fontsize=7)
+    for ax in list(axes.flat)[len(names):]:
+        ax.axis("off")
+    fig.supylabel("BC loss", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def _scalar(logdir: Path, tag: str) -> tuple[list[int], list[float]]:
+    if not logdir.exists():
+        return [], []
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(logdir))
+    acc.Reload()
+    if tag not in acc.Tags().get("scalars", []):
+        return [], []
+    events = acc.Scalars(tag)
+    return [e.step for e in events], [e.value for e in events]
