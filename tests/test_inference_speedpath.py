@@ -33,7 +33,7 @@ def tiny_model(name: str, context: int = 4, seed: int = 0, **overrides):
 def reference_predict(model, batch):
     """Normalised actions from the training forward pass (every block, dense offset head) at the last index."""
     cfg = model.cfg
-    if cfg.arch == "mlp":
+    if cfg.window == 1 and not hasattr(model, "gpt"):  # the Markovian MLP
         return model.net(batch["states"][:, -1])
     x, _ = model._features(batch, train=False)
     valid = batch.get("valid")

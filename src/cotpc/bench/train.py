@@ -111,8 +111,8 @@ def policy_step(name: str, setting: str, bf16: Optional[bool]) -> tuple[Callable
     ds = WindowDataset(trajs, list(range(len(trajs))), pcfg.window, Stats.of(obs, act), pcfg.cot_targets)
     torch.manual_seed(0)
     model = make_model(pcfg, s["obs_dim"], s["action_dim"], s["length"] + 1)
-    if pcfg.action_head == "bet":
-        model.centres.copy_(kmeans(ds.actions, pcfg.n_centres, iters=5))
+    if pcfg.n_kmeans_centres:
+        model.centres.copy_(kmeans(ds.actions, pcfg.n_kmeans_centres, iters=5))
     choice = probe_precision(model, pcfg, ds, pcfg.batch_size, "cpu", 1.0) if bf16 is None \
         else PrecisionChoice(bf16, "set by --bf16")
     optimizer, scheduler = make_optimizer(model, pcfg, 10**6, "cpu")

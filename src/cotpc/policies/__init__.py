@@ -1,19 +1,28 @@
-"""Policies: the CoTPC transformer, its baselines and ablations as configurations, and the inference wrapper."""
+"""Policies: families (a config dataclass and a model each, registered once: the transformer with DT, BeT, CoTPC
+and the ablations as presets; the BC MLP), the presets by name, and the inference wrapper."""
 
-from cotpc.policies.config import PRESETS, PolicyConfig, get_preset
-from cotpc.policies.model import MLPPolicy, TransformerPolicy, make_model
+from cotpc.policies.base import FAMILIES, BaseConfig, config_from_dict, config_to_dict, make_model, register_family
+from cotpc.policies.config import PRESETS, TransformerConfig, get_preset
+from cotpc.policies.mlp import MLPConfig, MLPPolicy
+from cotpc.policies.model import TransformerPolicy
 from cotpc.policies.policy import CheckpointError, Policy, load_model, load_policy, save_checkpoint
 
 __all__ = [
+    "FAMILIES",
     "PRESETS",
+    "BaseConfig",
     "CheckpointError",
+    "MLPConfig",
     "MLPPolicy",
     "Policy",
-    "PolicyConfig",
+    "TransformerConfig",
     "TransformerPolicy",
+    "config_from_dict",
+    "config_to_dict",
     "get_preset",
     "load_model",
     "load_policy",
     "make_model",
+    "register_family",
     "save_checkpoint",
 ]

@@ -1,8 +1,8 @@
-"""Policy configuration: one dataclass, and every policy of the paper as a named preset of it.
+"""The transformer family's configuration, and every policy of the paper as a named preset.
 
 The baselines (DT, BeT) and the ablations of paper Table 4 are *settings* of one transformer
-(:mod:`cotpc.policies.transformer`), not separate models; only ``bc`` (an MLP) and ``decoupled`` (which adds a
-second transformer for the CoT) differ in structure.
+(:mod:`cotpc.policies.transformer`, :mod:`cotpc.policies.model`), not separate models; only ``decoupled`` (which
+adds a second transformer for the CoT) differs in structure. ``bc`` is its own family (:mod:`cotpc.policies.mlp`).
 """
 
 from __future__ import annotations
@@ -11,18 +11,19 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Literal
 
+from cotpc.policies.base import BaseConfig
+from cotpc.policies.mlp import MLPConfig
+
 Source = Literal["state", "cot", "action"]
 CotTarget = Literal["next", "last", "random"]
 
 
 @dataclass(frozen=True)
-class PolicyConfig:
-    """Architecture, loss and recommended optimisation settings of a policy."""
+class TransformerConfig(BaseConfig):
+    """Architecture, loss and recommended optimisation settings of a transformer policy (DT, BeT, CoTPC)."""
 
     name: str = "cotpc"
     """Preset name this configuration came from (informational)."""
-    arch: Literal["mlp", "transformer"] = "transformer"
-    """``mlp``: Markovian BC; ``transformer``: the GPT backbone with interleaved state/action tokens."""
 
     # --- transformer backbone ---
     context: int = 10
@@ -57,7 +58,7 @@ class PolicyConfig:
     """k-means clusters K of the normalised actions (paper: 128 ManiSkill, 1024 maze/kitchen)."""
     offset_weight: float = 100.0
     """Weight of the offset MSE relative to the centre cross-entropy (paper: 100)."""
-    cot_targets: tuple[CotTarget, ...] = ()
+    cot_targets: tuple[CotTarget, ...] = ()  # type: ignore[assignment]  (a field here, a property in BaseConfig)
     """What the CoT decoder predicts per CoT token: ``next``/``last`` subskill state, or a ``random`` future state."""
     cot_weight: float = 0.1
     """lambda, the weight of the CoT MSE (paper: 0.1)."""
@@ -66,51 +67,27 @@ class PolicyConfig:
     decoupled: bool = False
     """A second transformer predicts the CoT, which is fed (with the state) to a BeT-style action transformer."""
     hidden: int = 256
-    """Hidden width of the encoders and decoders (and of the BC MLP)."""
-
-    # --- recommended optimisation (TrainConfig flags override) ---
-    lr: float = 5e-4
-    """Peak learning rate."""
-    min_lr: float = 5e-5
-    """Final learning rate of the cosine schedule."""
-    schedule: Literal["cosine", "constant"] = "cosine"
-    """Learning-rate schedule after the warm-up."""
-    warmup_iters: int = 1000
-    """Linear warm-up iterations (capped at a tenth of the run)."""
-    batch_size: int = 256
-    """Global batch size (split across DDP processes)."""
-    weight_decay: float = 1e-4
-    """AdamW weight decay on matrices (biases, LayerNorms, embeddings and prompt tokens are not decayed)."""
+    """Hidden width of the encoders and decoders."""
 
     @property
     def n_cot_tokens(self) -> int:
-        if self.arch != "transformer":
-            return 0
         return self.context if self.n_cot == -1 else self.n_cot
 
     @property
     def leak_free(self) -> bool:
         """True if no training prediction of window index i can see a(>=i) or s(>i) (tested)."""
-        return self.arch == "mlp" or self.n_cot_tokens == 0 or self.cot_attention == "causal"
+        return self.n_cot_tokens == 0 or self.cot_attention == "causal"
 
     @property
     def window(self) -> int:
-        """Timesteps per training window (1 for the Markovian MLP)."""
-        return 1 if self.arch == "mlp" else self.context
+        """Timesteps per training window."""
+        return self.context
 
     @property
-    def needs_subskills(self) -> bool:
-        """True if training needs ``subskill_ends`` in the data file."""
-        return any(t in ("next", "last") for t in self.cot_targets)
-
-    def replace(self, **changes) -> "PolicyConfig":
-        cfg = dataclasses.replace(self, **changes)
-        cfg.validate()
-        return cfg
+    def n_kmeans_centres(self) -> int:
+        return self.n_centres if self.action_head == "bet" else 0
 
     def validate(self) -> None:
-        if self.arch == "mlp":
-            return
         if self.d_model % self.n_heads:
             raise ValueError(f"d_model={self.d_model} must be divisible by n_heads={self.n_heads}")
         if self.context < 1:
@@ -133,18 +110,15 @@ class PolicyConfig:
             raise ValueError("decoupled predicts the next and last subskill states")
 
 
-_COTPC = PolicyConfig(
+_COTPC = TransformerConfig(
     name="cotpc", n_cot=-1, action_head="bet", centre_from="state", offset_from="cot", cot_targets=("next", "last")
 )
 
-PRESETS: dict[str, PolicyConfig] = {
+PRESETS: dict[str, BaseConfig] = {
     # Baselines (paper appendix "Implementation Details").
-    "bc": PolicyConfig(
-        name="bc", arch="mlp", action_head="mse", lr=1e-3, min_lr=1e-3, schedule="constant", warmup_iters=0,
-        batch_size=32, weight_decay=0.0,
-    ),
-    "dt": PolicyConfig(name="dt", action_head="mse"),
-    "bet": PolicyConfig(name="bet", action_head="bet"),
+    "bc": MLPConfig(),
+    "dt": TransformerConfig(name="dt", action_head="mse"),
+    "bet": TransformerConfig(name="bet", action_head="bet"),
     # The method.
     "cotpc": _COTPC,
     # The method without the hybrid mask's target leak: CoT token i sees only what is known at window index i.
@@ -164,8 +138,11 @@ for _cfg in PRESETS.values():
     _cfg.validate()
 
 
-def get_preset(name: str, **overrides) -> PolicyConfig:
+def get_preset(name: str, **overrides) -> BaseConfig:
+    """The preset ``name`` with the given settings changed. Settings left None keep the preset's, and settings its
+    family does not have (the context of the Markovian MLP, say) are ignored."""
     if name not in PRESETS:
         raise ValueError(f"unknown policy {name!r}; choose one of {', '.join(PRESETS)}")
-    overrides = {k: v for k, v in overrides.items() if v is not None}
-    return PRESETS[name].replace(**overrides)
+    cfg = PRESETS[name]
+    fields = {f.name for f in dataclasses.fields(cfg)}
+    return cfg.replace(**{k: v for k, v in overrides.items() if v is not None and k in fields})

@@ -1,6 +1,7 @@
-"""Policy networks: the transformer policy (DT, BeT, CoTPC and its ablations) and the BC MLP.
+"""The transformer family's network: the policy of DT, BeT, CoTPC and its ablations (registered as the family
+``transformer`` with :class:`~cotpc.policies.config.TransformerConfig`).
 
-Both take *normalised* tensors. The normalisation statistics and the k-means centres are buffers, so they are
+It takes *normalised* tensors. The normalisation statistics and the k-means centres are buffers, so they are
 saved in ``model.safetensors`` with the weights.
 
 A training batch is a dict of
@@ -14,8 +15,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from cotpc.policies.config import PolicyConfig
-from cotpc.policies.transformer import GPT, mlp, run_mlp
+from cotpc.policies.base import Normaliser, mlp, register_family
+from cotpc.policies.config import TransformerConfig
+from cotpc.policies.transformer import GPT, run_mlp
 
 
 class RowGatheredLinear(torch.autograd.Function):
@@ -51,19 +53,8 @@ def _masked_mean(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     return (x * w).sum() / w.sum().clamp_min(1.0)
 
 
-class Normaliser(nn.Module):
-    """Observation and action statistics (buffers, saved in the checkpoint)."""
-
-    def __init__(self, obs_dim: int, action_dim: int):
-        super().__init__()
-        self.register_buffer("obs_mean", torch.zeros(obs_dim))
-        self.register_buffer("obs_std", torch.ones(obs_dim))
-        self.register_buffer("act_mean", torch.zeros(action_dim))
-        self.register_buffer("act_std", torch.ones(action_dim))
-
-
 class TransformerPolicy(nn.Module):
-    def __init__(self, cfg: PolicyConfig, obs_dim: int, action_dim: int, max_timestep: int):
+    def __init__(self, cfg: TransformerConfig, obs_dim: int, action_dim: int, max_timestep: int):
         super().__init__()
         self.cfg, self.obs_dim, self.action_dim = cfg, obs_dim, action_dim
         self.norm = Normaliser(obs_dim, action_dim)
@@ -323,37 +314,6 @@ class TransformerPolicy(nn.Module):
         return self.centres[c] + off
 
 
-class MLPPolicy(nn.Module):
-    """Markovian BC: a 3-layer MLP (hidden 256) from the current state to the action, MSE."""
-
-    def __init__(self, cfg: PolicyConfig, obs_dim: int, action_dim: int, max_timestep: int = 0):
-        super().__init__()
-        self.cfg, self.obs_dim, self.action_dim = cfg, obs_dim, action_dim
-        self.norm = Normaliser(obs_dim, action_dim)
-        self.net = mlp([obs_dim, cfg.hidden, cfg.hidden, action_dim])
-
-    def forward(self, batch: dict):
-        return self.loss(batch)
-
-    def loss(self, batch: dict) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        pred = self.net(batch["states"][:, -1]).float()
-        mse = ((pred - batch["actions"][:, -1]) ** 2).mean()
-        return mse, {"mse": mse, "bc": mse, "loss": mse}
-
-    def predict(self, batch: dict) -> torch.Tensor:
-        return self.net(batch["states"][:, -1]).float()
-
-    @torch.no_grad()
-    def inference_metrics(self, batch: dict) -> dict[str, torch.Tensor]:
-        """As :meth:`TransformerPolicy.inference_metrics`; Markovian, so the same as its loss."""
-        err = ((self.predict(batch) - batch["actions"][:, -1]) ** 2).mean()
-        return {"bc": err, "action_err": err}
-
-    @torch.no_grad()
-    def validation_metrics(self, batch: dict) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
-        return self.loss(batch)[1], self.inference_metrics(batch)
-
-
 def _init_weights(m: nn.Module) -> None:
     # GPT-2 / minGPT initialisation, as in the official CoTPC code
     if isinstance(m, (nn.Linear, nn.Embedding)):
@@ -365,9 +325,4 @@ def _init_weights(m: nn.Module) -> None:
             nn.init.normal_(m.cot_tokens, std=0.02)
 
 
-def make_model(cfg: PolicyConfig, obs_dim: int, action_dim: int, max_timestep: int) -> nn.Module:
-    """Build the network of a policy configuration."""
-    cfg.validate()
-    if cfg.arch == "mlp":
-        return MLPPolicy(cfg, obs_dim, action_dim, max_timestep)
-    return TransformerPolicy(cfg, obs_dim, action_dim, max_timestep)
+register_family("transformer", TransformerConfig, TransformerPolicy)

@@ -6,7 +6,6 @@ config) and ``model.safetensors`` (weights, normalisation statistics and k-means
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 from pathlib import Path
@@ -15,28 +14,14 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
-from cotpc.policies.config import PolicyConfig
-from cotpc.policies.model import TransformerPolicy, make_model
+from cotpc.policies.base import BaseConfig, config_from_dict, config_to_dict, make_model
+from cotpc.policies.model import TransformerPolicy
 
 FORMAT = "cotpc-policy"
 
 
 class CheckpointError(ValueError):
     """A run directory is missing, malformed, or its weights do not match its config."""
-
-
-def config_to_dict(cfg: PolicyConfig) -> dict:
-    return dataclasses.asdict(cfg)
-
-
-def config_from_dict(d: dict) -> PolicyConfig:
-    fields = {f.name for f in dataclasses.fields(PolicyConfig)}
-    unknown = set(d) - fields
-    if unknown:
-        raise CheckpointError(f"unknown policy config keys {sorted(unknown)} (written by a newer cotpc?)")
-    d = dict(d)
-    d["cot_targets"] = tuple(d.get("cot_targets", ()))
-    return PolicyConfig(**d)
 
 
 def _atomic_write(path: Path, write) -> None:
@@ -71,7 +56,10 @@ def read_config(directory: str | os.PathLike) -> dict:
 def load_model(directory: str | os.PathLike, device: str = "cpu") -> tuple[torch.nn.Module, dict]:
     directory = Path(directory)
     info = read_config(directory)
-    cfg = config_from_dict(info["policy"])
+    try:
+        cfg = config_from_dict(info["policy"])
+    except (ValueError, TypeError) as e:
+        raise CheckpointError(f"{directory}/config.json: {e}") from None
     model = make_model(cfg, info["obs_dim"], info["action_dim"], info.get("max_timestep", 1))
     weights = directory / "model.safetensors"
     if not weights.exists():
@@ -116,7 +104,7 @@ class Policy:
         self.model = model.to(device).eval()
         self.info = info or {}
         self.device = torch.device(device)
-        self.cfg: PolicyConfig = model.cfg
+        self.cfg: BaseConfig = model.cfg
         self.obs_dim, self.action_dim = model.obs_dim, model.action_dim
         self.T = self.cfg.window
         self._transformer = isinstance(model, TransformerPolicy)

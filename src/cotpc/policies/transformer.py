@@ -32,17 +32,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from cotpc.policies.config import PolicyConfig
-
-
-def mlp(sizes: list[int], act: type[nn.Module] = nn.ReLU) -> nn.Sequential:
-    """Linear layers of the given sizes with ``act`` between them (none after the last)."""
-    layers: list[nn.Module] = []
-    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
-        layers.append(nn.Linear(a, b))
-        if i < len(sizes) - 2:
-            layers.append(act())
-    return nn.Sequential(*layers)
+from cotpc.policies.base import mlp
+from cotpc.policies.config import TransformerConfig
 
 
 class Layout:
@@ -222,7 +213,7 @@ class Block(nn.Module):
 class GPT(nn.Module):
     """Encoders, positional embeddings, CoT prompt tokens and the blocks. Returns token features."""
 
-    def __init__(self, cfg: PolicyConfig, state_dim: int, action_dim: int, max_timestep: int, n_cot: int):
+    def __init__(self, cfg: TransformerConfig, state_dim: int, action_dim: int, max_timestep: int, n_cot: int):
         super().__init__()
         d = cfg.d_model
         self.cfg, self.max_timestep = cfg, max_timestep

@@ -122,7 +122,7 @@ def finished(run_dir: Path, iters: int, wanted: dict | None = None) -> bool:
         from cotpc.policies.config import get_preset
 
         preset = get_preset(wanted["policy"])
-        if preset.action_head != "bet":
+        if not preset.n_kmeans_centres:
             ignore.add("n_centres")  # no k-means head: K changes nothing (BC/DT runs serve studies with any K)
         if not preset.cot_targets:
             ignore.add("cot_weight")  # no CoT loss: its weight changes nothing

@@ -33,8 +33,8 @@ from cotpc.data.trajectories import load_trajectories
 from cotpc.envs.spec import task_defaults
 from cotpc.policies.config import PRESETS, get_preset
 from cotpc.policies.kmeans import kmeans
-from cotpc.policies.model import make_model
-from cotpc.policies.policy import CheckpointError, config_to_dict, load_state, save_checkpoint
+from cotpc.policies.base import config_from_dict, config_to_dict, make_model
+from cotpc.policies.policy import CheckpointError, load_state, save_checkpoint
 from cotpc.training.precision import PrecisionChoice, autocast_for, choose_precision
 
 PolicyName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
@@ -301,8 +301,8 @@ def train(config: TrainConfig) -> Path:
     model = make_model(cfg, q, p, max_timestep)
     model.norm.obs_mean.copy_(stats.obs_mean), model.norm.obs_std.copy_(stats.obs_std)
     model.norm.act_mean.copy_(stats.act_mean), model.norm.act_std.copy_(stats.act_std)
-    if cfg.action_head == "bet":  # BeT: k-means of the normalised training actions, once, saved as a buffer
-        model.centres.copy_(kmeans(ds.actions.cpu(), cfg.n_centres, seed=config.seed))
+    if cfg.n_kmeans_centres:  # BeT heads: k-means of the normalised training actions, once, saved as a buffer
+        model.centres.copy_(kmeans(ds.actions.cpu(), cfg.n_kmeans_centres, seed=config.seed))
     model.to(device)
     optimizer, scheduler = make_optimizer(model, cfg, config.iters, device)
     # batches are sampled on the device (a CUDA generator on a GPU: no host round trip per step)
@@ -320,7 +320,7 @@ def train(config: TrainConfig) -> Path:
     state_path = run_dir / "training_state.pt"
     if config.resume and state_path.exists():
         state = torch.load(state_path, map_location="cpu", weights_only=False)
-        saved = state["policy"]
+        saved = config_to_dict(config_from_dict(state["policy"]))  # (states saved before policy families too)
         if saved != config_to_dict(cfg) or state["dims"] != [q, p]:
             diff = {k: (saved.get(k), v) for k, v in config_to_dict(cfg).items() if saved.get(k) != v}
             raise CheckpointError(
