@@ -32,13 +32,12 @@ BASELINES = ("bc", "dt", "bet", "cotpc")
 # "val" configs come from the validation seed range: they are for diagnosing and choosing settings, so that
 # nothing is ever tuned on "unseen" (test) configs.
 EVAL_KEYS = {
-    eval_name(split, RULES[rules].deadly_gaps, RULES[rules].min_action): (split, RULES[rules].deadly_gaps,
-                                                                          RULES[rules].min_action)
-    for rules, splits in (
-        ("paper", ("seen", "val", "unseen")),
-        ("forgiving", ("seen", "val", "unseen")),
-        ("any-action", ("val", "unseen")),
-        ("safe-gaps", ("val", "unseen")),
+    eval_name(split, r.deadly_gaps, r.min_action): (split, r.deadly_gaps, r.min_action)
+    for r, splits in (
+        (RULES["paper"], ("seen", "val", "unseen")),
+        (RULES["forgiving"], ("seen", "val", "unseen")),
+        (RULES["any-action"], ("val", "unseen")),
+        (RULES["safe-gaps"], ("val", "unseen")),
     )
     for split in splits
 }
@@ -54,7 +53,7 @@ class ReproduceSettings:
     policies: tuple[str, ...]
     ablations: tuple[str, ...]
     beta: float
-    cost: str = "sum-cosine"
+    cost: str = SPEC.defaults.cost
     train_demos: int = 400
     test_demos: int = 100
     val_demos: int = 100
