@@ -102,3 +102,26 @@ def test_reproduce_parallel_jobs_and_checkpoint_curve(tmp_path):
     other[other.index("--n-centres") + 1] = "16"
     with pytest.raises(ValueError, match="other settings"):
         cotpc_main(["reproduce", "maze", "--out", str(serial), *other])
+
+
+def test_a_run_of_another_design_under_the_same_preset_name_is_not_reused(tmp_path):
+    """Reuse compares the preset's design too: if a preset name comes to mean another design (as `cotpc` may),
+    a finished run of the earlier design is an error, not a result of the new one."""
+    import dataclasses
+
+    import pytest
+
+    from cotpc.policies import config_to_dict, get_preset
+    from cotpc.studies.runs import finished
+
+    run = tmp_path / "cotpc" / "seed0"
+    run.mkdir(parents=True)
+    info = {"train": {"policy": "cotpc", "seed": 0, "iters": 5, "context": 4},
+            "policy": config_to_dict(get_preset("cotpc", context=4)), "step": 5}
+    (run / "config.json").write_text(json.dumps(info))
+    assert finished(run, 5, {"policy": "cotpc", "seed": 0})
+    other = dataclasses.replace(get_preset("cotpc"), cot_attention="causal", random_cot_mask=False)
+    info["policy"] = config_to_dict(other)
+    (run / "config.json").write_text(json.dumps(info))
+    with pytest.raises(ValueError, match="policy.cot_attention"):
+        finished(run, 5, {"policy": "cotpc", "seed": 0})

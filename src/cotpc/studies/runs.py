@@ -5,6 +5,7 @@ statistics over seeds, and the training curves read back from TensorBoard."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 import time
@@ -127,10 +128,23 @@ def finished(run_dir: Path, iters: int, wanted: dict | None = None) -> bool:
         if not preset.cot_targets:
             ignore.add("cot_weight")  # no CoT loss: its weight changes nothing
     diff = {k: (saved.get(k), v) for k, v in wanted.items() if k not in ignore and saved.get(k) != v}
+    if "policy" in wanted and "policy" in info:  # the preset's design (a preset name can change meaning)
+        diff.update(_design_diff(info["policy"], preset))
     if diff:
         raise ValueError(f"{run_dir} holds a run trained with other settings (saved, asked for): {diff}. "
                          "Use another --out, or delete that run to train it again.")
     return info.get("step") == iters
+
+
+def _design_diff(saved_policy: dict, preset) -> dict:
+    """The fields of the preset's config that training flags cannot change (attention design, heads, CoT targets,
+    ...) and that differ in a saved run's config: a run of another design under the same preset name."""
+    from cotpc.policies.base import config_from_dict, config_to_dict
+    from cotpc.training.train import TrainConfig
+
+    flags = {f.name for f in dataclasses.fields(TrainConfig)} | {"name"}
+    saved, now = config_to_dict(config_from_dict(saved_policy)), config_to_dict(preset)
+    return {f"policy.{k}": (saved.get(k), v) for k, v in now.items() if k not in flags and saved.get(k) != v}
 
 
 def plot_learning_curves(runs: Path, names: list[str], path: Path) -> Path:
