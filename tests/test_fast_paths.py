@@ -10,7 +10,7 @@ import torch.nn.functional as F
 
 from cotpc.data import save_trajectories
 from cotpc.data.dataset import synthetic_trajectories
-from cotpc.policies import PRESETS
+from cotpc.policies import PRESETS, TransformerConfig
 from cotpc.policies.model import RowGatheredLinear
 from cotpc.policies.transformer import Layout, MaskedAttention, build_mask, mask_to_bias
 from cotpc.training import TrainConfig, train
@@ -91,7 +91,7 @@ def _full_loss(model, batch):
         del model._true_centre_offsets
 
 
-@pytest.mark.parametrize("name", [n for n in PRESETS if n != "bc"])
+@pytest.mark.parametrize("name", [n for n, c in PRESETS.items() if isinstance(c, TransformerConfig)])
 def test_training_loss_on_the_rows_read_equals_the_full_computation(name, trajs):
     model, ds = build(name, trajs)
     with torch.no_grad():
@@ -164,3 +164,29 @@ def test_precision_probe_is_stored_and_leaves_the_run_unchanged(tmp_path):
     timing = json.loads((probed / "loop_timing.json").read_text())
     assert len(timing) == 1 and timing[0]["to_step"] == 6 and 0 <= timing[0]["overhead_share"] < 1
     assert set(timing[0]["parts_s"]) == {"sample", "step", "log", "validate", "checkpoint"}
+
+
+def test_dense_offset_path_under_bf16_matches_the_gathered_one(trajs):
+    """Under bf16 autocast with K <= h the offset head runs dense (cheaper there); it must give the true centre's
+    offsets and gradients as the row-gathered path does, to bf16 accuracy."""
+    import cotpc.policies.model as model_module
+
+    model, ds = build("cotpc", trajs)
+    hidden = torch.randn(4, 6, model.cfg.hidden)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert model_module._dense_offsets_pay(hidden, model.cfg.n_centres) == (model.cfg.n_centres <= model.cfg.hidden)
+    assert not model_module._dense_offsets_pay(hidden, model.cfg.n_centres)  # fp32 on a CPU: gathered
+    feats = torch.randn(4, 6, model.cfg.d_model, requires_grad=True)
+    centre = torch.randint(0, model.cfg.n_centres, (4, 6))
+    results = []
+    for dense in (True, False):
+        saved = model_module._dense_offsets_pay
+        model_module._dense_offsets_pay = lambda x, k: dense
+        try:
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                off = model._true_centre_offsets(feats, centre).float()
+            results.append((off, torch.autograd.grad(off.square().sum(), feats)[0]))
+        finally:
+            model_module._dense_offsets_pay = saved
+    torch.testing.assert_close(results[0][0], results[1][0], atol=2e-2, rtol=2e-2)
+    torch.testing.assert_close(results[0][1], results[1][1], atol=5e-2, rtol=5e-2)
