@@ -34,3 +34,63 @@ def test_one_seed_range_mechanism_for_every_environment():
         moving_maze.check_seed(2_000_000, "train")
     with pytest.raises(ValueError, match="overlap"):
         SeedRanges({"a": (0, 10), "b": (5, 20)})
+
+
+# ------------------------------------------------------------------ task suites: what the command line runs
+
+
+def test_suites_are_found_by_name_and_env_id():
+    from cotpc.envs.moving_maze import ENV_ID
+    from cotpc.studies.suites import suite_for_env, suites
+
+    assert {"maze", "maniskill"} <= set(suites())
+    assert suite_for_env(ENV_ID).name == "maze"
+    assert suite_for_env("StackCube-v1").name == "maniskill"
+    assert suite_for_env("SomeoneElsesTask-v0") is None and suite_for_env(None) is None
+
+
+def test_a_new_suite_is_reached_by_the_command_line_without_touching_cli(tmp_path):
+    """Registering a suite is all a benchmark needs: `cotpc demos NAME` and `cotpc eval` on its runs reach it."""
+    from dataclasses import dataclass
+
+    import pytest
+
+    from cotpc.cli.main import main as cotpc_main
+    from cotpc.studies import suites as registry
+
+    calls = []
+
+    @dataclass
+    class ToyDemos:
+        """Toy demos."""
+
+        n: int = 1
+        """How many."""
+
+    @dataclass
+    class ToyStudy:
+        """Toy study."""
+
+        seeds: int = 1
+        """Seeds."""
+
+    toy = registry.Suite(
+        name="toy", owns=lambda env_id: env_id == "Toy-v0", demos=ToyDemos,
+        make_demos=lambda cfg: calls.append(("demos", cfg.n)) or {},
+        evaluate=lambda req, info, env_id: calls.append(("eval", env_id, req.split)) or {},
+        reproduce=ToyStudy, run_study=lambda cfg: calls.append(("study", cfg.seeds)),
+    )
+    registry.register_suite(toy)
+    try:
+        cotpc_main(["demos", "toy", "--n", "3"])
+        cotpc_main(["reproduce", "toy", "--seeds", "2"])
+        run = tmp_path / "run"
+        run.mkdir()
+        (run / "config.json").write_text('{"format": "cotpc-policy", "dataset": {"env_id": "Toy-v0"}}')
+        cotpc_main(["eval", str(run), "--split", "val"])
+        assert calls == [("demos", 3), ("study", 2), ("eval", "Toy-v0", "val")]
+        (run / "config.json").write_text('{"format": "cotpc-policy", "dataset": {"env_id": "Nobody-v0"}}')
+        with pytest.raises(SystemExit, match="no task suite evaluates"):
+            cotpc_main(["eval", str(run)])
+    finally:
+        registry._SUITES.pop("toy")

@@ -11,7 +11,7 @@ BENCHES: dict[str, tuple[str, str]] = {
         "cotpc.bench.segment",
         "Exact batched subskill discovery vs ruptures' PELT on synthetic actions: seconds and objectives.",
     ),
-    "train": ("cotpc.bench.train", "ms per training iteration of every policy (ManiSkill and maze shapes), GFLOP/s."),
+    "train": ("cotpc.bench.train", "ms per training iteration of every policy (the paper's task shapes), GFLOP/s."),
     "act": ("cotpc.bench.act", "ms per select_action at batch 1 and 100."),
 }
 

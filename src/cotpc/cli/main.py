@@ -10,7 +10,7 @@ import sys
 
 # verb -> (module with a ``main(argv, prog)`` function, one-line description)
 VERBS: dict[str, tuple[str, str]] = {
-    "demos": ("cotpc.cli.demos", "Generate demonstrations (Moving Maze, ManiSkill3 planners) in ManiSkill3's trajectory format."),
+    "demos": ("cotpc.cli.demos", "Generate demonstrations of a task suite in ManiSkill3's trajectory format."),
     "train": ("cotpc.cli.train", "Train a policy (bc, dt, bet, cotpc or an ablation) on a demonstration file."),
     "eval": ("cotpc.cli.eval", "Roll a trained policy out on seen or unseen configs; success rate with a 95% CI."),
     "segment": ("cotpc.cli.segment", "Discover subskills (exact DP) and store traj_<i>/subskill_ends in a trajectory file."),

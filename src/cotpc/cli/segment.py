@@ -21,16 +21,16 @@ class Config:
     data: tyro.conf.Positional[Path]
     """Trajectory file (NAME.h5, with NAME.json beside it)."""
     beta: float | None = None
-    """Penalty per subskill. Default: the task's (cotpc.envs.task_defaults): 1.0 for Moving Maze data, else the paper's
-    single-arm 0.05."""
+    """Penalty per subskill. Default: the task's (cotpc.envs.spec.task_defaults, from the data's env id), or the
+    paper's single-arm 0.05 for data of an unregistered environment."""
     cost: Cost | None = None
     """Segment cost: 'mean-cosine' is the paper's (mean cosine distance to the segment mean); 'sum-cosine' is n
-    times that. Default: the task's, sum-cosine for Moving Maze data, else 'mean-cosine'."""
+    times that. Default: the task's, or 'mean-cosine' for data of an unregistered environment."""
     min_size: int = 1
     """Minimum number of actions per subskill."""
     plot: Path | None = None
-    """Directory for figures: action similarity maps with boundaries; for Moving Maze also the demo paths
-    coloured by subskill (and with --sweep-beta, precision/recall against beta)."""
+    """Directory for figures: action similarity maps with boundaries, the task suite's own figures (for example
+    the demo paths coloured by subskill) and, with --sweep-beta, precision/recall against beta."""
     num_plot: int = 4
     """Demos shown per figure (the first ones of the file)."""
     sweep_beta: tuple[float, ...] = ()
@@ -43,8 +43,8 @@ class Config:
     json: bool = False
     """Print the summary (or the sweep rows) as JSON."""
     privileged: bool = False
-    """Do not discover: store each demo's privileged key_steps (e.g. the Moving Maze region entries) as its
-    subskill boundaries, like the official code's simulator key states. For comparing against discovery."""
+    """Do not discover: store each demo's privileged key_steps (recorded by a demonstrator) as its subskill
+    boundaries, like the official code's simulator key states. For comparing against discovery."""
 
 
 def defaults_for(env_id: str | None, beta: float | None, cost: str | None) -> tuple[float, str]:
@@ -113,15 +113,16 @@ def run(cfg: Config) -> dict:
         summary, ends = label_file(cfg.data, beta, cfg.min_size, cost, cfg.tol, trajectories=ts)
     print(json.dumps(summary, indent=1) if cfg.json else format_summary(cfg.data, summary))
     if cfg.plot is not None:
-        from cotpc.envs.moving_maze import ENV_ID as MAZE_ENV_ID
-        from cotpc.subskills.plots import plot_maze_paths, plot_similarity_maps
+        from cotpc.studies.suites import suite_for_env
+        from cotpc.subskills.plots import plot_similarity_maps
 
         k = min(cfg.num_plot, len(episodes))
         titles = [f"traj_{ep.episode_id}: {len(e)} subskills" for ep, e in zip(episodes[:k], ends[:k])]
         files = [plot_similarity_maps(cfg.plot / "subskills_similarity.png", actions[:k], ends[:k], titles,
                                       keys[:k] if keys is not None else None)]
-        if env_id == MAZE_ENV_ID:
-            files.append(plot_maze_paths(cfg.plot / "subskills_maze_paths.png", episodes[:k], ends[:k], titles))
+        suite = suite_for_env(env_id)
+        if suite is not None and suite.subskill_plots is not None:  # the task's own figures (maze: the paths)
+            files += suite.subskill_plots(cfg.plot, episodes[:k], ends[:k], titles)
         for f in files:
             print(f"wrote {f}")
     return summary

@@ -21,8 +21,9 @@ from __future__ import annotations
 import collections
 import multiprocessing as mp
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, Optional
 
 import numpy as np
 
@@ -312,3 +313,38 @@ def write_splits(env_id: str, out: Path, num: int, test: int, control_mode: str 
                                           offset=offset, max_attempts=max_attempts, progress=progress)
     print(f"generated in {time.perf_counter() - start:.1f} s")
     return paths
+
+
+@dataclass
+class ManiSkillDemos:
+    """ManiSkill3 demos (needs `pip install -e '.[maniskill]'`): the official motion planner runs headless, its
+    pd_joint_pos actions are converted by ManiSkill's converter to --control-mode with state observations, and
+    only demos that succeed after conversion are kept. Writes OUT/train.{h5,json} (seeds 0.., the 'seen' seeds)
+    and OUT/test.{h5,json} (seeds 2000000.., the 'unseen' seeds). Saves progress every few demos; re-running the
+    same command resumes (or extends a finished split to a larger --num)."""
+
+    env: str = "StackCube-v1"
+    """ManiSkill3 task with a motion-planning solution: StackCube-v1, PegInsertionSide-v1, PickCube-v1,
+    PushCube-v1, ... (the paper used 500 Stack Cube and 1000 Peg Insertion demos)."""
+    out: Path = Path("data/maniskill")
+    """Output directory."""
+    num: int = 500
+    """Number of (successful) training demos."""
+    test: int = 100
+    """Number of test demos, from the disjoint test seed range (their seeds are the 'unseen' evaluation set)."""
+    control_mode: Literal["pd_joint_delta_pos", "pd_ee_delta_pose"] = "pd_joint_delta_pos"
+    """Action space of the converted demos."""
+    procs: int = 1
+    """Processes planning and converting in parallel (the demos are identical for any number)."""
+    offset: int = 0
+    """Start this far into each split's seed range."""
+    max_attempts: Optional[int] = None
+    """Give up on a split after this many seeds (default 3 * N + 50)."""
+    progress: bool = True
+    """Show progress bars."""
+
+
+def make_demos(cfg: ManiSkillDemos) -> dict[str, Path]:
+    """``cotpc demos maniskill`` (mani_skill is imported only when demos are made: an optional extra)."""
+    return write_splits(cfg.env, cfg.out, cfg.num, cfg.test, control_mode=cfg.control_mode, procs=cfg.procs,
+                        offset=cfg.offset, max_attempts=cfg.max_attempts, progress=cfg.progress)

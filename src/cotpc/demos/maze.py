@@ -24,6 +24,7 @@ import functools
 import time
 from pathlib import Path
 from dataclasses import asdict, dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -307,3 +308,33 @@ def write_splits(out: Path, train: int, test: int, val: int = 0, seed: int = 0, 
         paths[split] = h5_path
     print(f"generated in {time.perf_counter() - start:.1f} s")
     return paths
+
+
+@dataclass
+class MazeDemos:
+    """Moving Maze demos from the RRT-style planner with hindsight; writes OUT/train.{h5,json}, OUT/val.{h5,json}
+    and OUT/test.{h5,json}, each from its own disjoint seed range."""
+
+    out: Path
+    """Output directory."""
+    train: int = 400
+    """Number of training demos (configs from the train seed range; these are also the 'seen' configs)."""
+    test: int = 100
+    """Number of test demos (configs from the disjoint test seed range; the 'unseen' configs)."""
+    val: int = 100
+    """Number of validation demos (configs from the disjoint validation seed range): evaluate on these with
+    `cotpc eval --split val` to choose settings or checkpoints without touching the test configs. 0 = none."""
+    seed: int = 0
+    """Offset into each split's seed range: demo i of a split uses that split's seed start + seed + i."""
+    workers: int = 1
+    """Processes used for planning (demos are identical for any number of workers)."""
+    landing: Literal["observed", "moved"] = "observed"
+    """When the blocks move within a step: 'observed' checks a move against the block positions the agent saw;
+    'moved' moves the blocks first (the agent must anticipate them). Stored in the files' env_kwargs, which
+    `cotpc eval` uses."""
+
+
+def make_demos(cfg: MazeDemos) -> dict[str, Path]:
+    """``cotpc demos maze``."""
+    return write_splits(cfg.out, cfg.train, cfg.test, val=cfg.val, seed=cfg.seed, workers=cfg.workers,
+                        landing=cfg.landing)

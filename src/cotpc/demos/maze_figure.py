@@ -8,6 +8,7 @@ privileged key steps (region entries) marked.
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import matplotlib
 
@@ -75,6 +76,38 @@ def make_figure(out: str, num: int = 6) -> None:
     fig.tight_layout()
     fig.savefig(out, dpi=110)
     plt.close(fig)
+
+
+def plot_maze_paths(out: Path, episodes, ends_list, titles) -> Path:
+    """Moving Maze demos (obs[:, :2] = agent x, y): the path coloured by subskill, discovered key states
+    (``obs[c_i + 1]``) as circles, privileged ``key_steps`` as black crosses."""
+    from cotpc.data.targets import key_state_indices
+
+    k = len(episodes)
+    fig, axes = plt.subplots(1, k, figsize=(2.4 * k, 3.6), squeeze=False)
+    cmap = plt.get_cmap("tab10")
+    for ax, ep, ends, title in zip(axes[0], episodes, ends_list, titles):
+        obs = ep.obs
+        draw_maze(ax, obs[0])
+        start = 0
+        for s, c in enumerate(ends):  # segment s: states start .. c + 1
+            xy = obs[start : int(c) + 2, :2]
+            ax.plot(xy[:, 0], xy[:, 1], "-", color=cmap(s % 10), lw=1.6)
+            ax.plot(xy[:-1, 0], xy[:-1, 1], ".", color=cmap(s % 10), ms=3)
+            start = int(c) + 1
+        ax.plot(*obs[0, :2], "s", color="black", ms=4)
+        key = obs[key_state_indices(ends)[:-1], :2]
+        ax.plot(key[:, 0], key[:, 1], "o", mfc="none", mec="red", mew=1.5, ms=8, label="discovered key states")
+        if "key_steps" in ep.extras:
+            true = obs[np.asarray(ep.extras["key_steps"]), :2]
+            ax.plot(true[:, 0], true[:, 1], "x", color="black", mew=1.5, ms=6, label="privileged key steps")
+        ax.set_title(title, fontsize=8)
+    axes[0][0].legend(loc="lower right", fontsize=6)
+    fig.suptitle("Moving Maze demos coloured by discovered subskill", fontsize=9)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    return out
 
 
 if __name__ == "__main__":

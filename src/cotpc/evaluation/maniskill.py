@@ -280,6 +280,36 @@ def evaluate(
     )
 
 
+def evaluate_run(req, info: dict, env_id: str) -> dict:
+    """``cotpc eval`` of a ManiSkill3 run: ``req`` an :class:`cotpc.evaluation.request.EvalRequest`, ``info`` the
+    run's config.json. Writes the per-episode JSON and prints the summary."""
+    from cotpc.envs.maniskill import import_maniskill
+
+    if req.rules not in (None, "paper"):
+        raise SystemExit(f"cotpc eval: {env_id} has no rule variants (--rules {req.rules}); {req.run} was trained on it")
+    import_maniskill()
+    if req.video:
+        raise SystemExit("cotpc eval: --video needs a render device for ManiSkill3 tasks; not supported yet")
+    demos, weights = req.demos_and_weights(info)
+    device = req.device if req.backend != "cpu" else "cpu"
+    result = evaluate(policy_loader(weights, device), demos, req.split, req.episodes, horizon=req.horizon,
+                      procs=req.procs, backend=req.backend, num_envs=req.num_envs)
+    if result.env_id != env_id:
+        raise SystemExit(f"cotpc eval: {req.run} was trained on {env_id} but {demos} holds {result.env_id} demos")
+    result.meta.update({"run": str(req.run), "checkpoint": req.checkpoint, "demos": str(demos)})
+    out = req.out or req.run / f"eval_{req.split}.json"
+    result.to_json(out)
+    s = result.summary()
+    lo1, hi1 = s["success_once_ci95"]
+    lo2, hi2 = s["success_at_end_ci95"]
+    print(
+        f"{req.run} [{env_id} {req.split}, horizon {s['horizon']}] success_once {100 * s['success_once']:.1f}% "
+        f"(95% CI {100 * lo1:.1f}-{100 * hi1:.1f}), success_at_end {100 * s['success_at_end']:.1f}% "
+        f"(95% CI {100 * lo2:.1f}-{100 * hi2:.1f}), n={s['episodes']}, {s['seconds']:.1f} s ({s['backend']}) -> {out}"
+    )
+    return s
+
+
 def policy_loader(run_dir: str | Path, device: str = "cpu") -> Callable[[], Any]:
     """A picklable factory loading ``run_dir`` with :func:`cotpc.load_policy` (one copy per process)."""
     from cotpc.policies.policy import load_policy

@@ -15,7 +15,7 @@ import numpy as np
 
 from cotpc.data.trajectories import load_trajectories
 from cotpc.envs.moving_maze import (
-    ENV_ID, HORIZON, PAPER_MIN_ACTION, MazeConfig, MazeRules, MovingMazeBatch, check_seed, render_frame,
+    ENV_ID, HORIZON, PAPER_MIN_ACTION, RULES, MazeConfig, MazeRules, MovingMazeBatch, check_seed, render_frame,
 )
 from cotpc.evaluation.stats import wilson_interval
 
@@ -177,6 +177,33 @@ def evaluate(
     if video_dir:
         result.meta["videos"] = [str(p) for p in write_videos(frames, seeds, result.success, video_dir)]
     return result
+
+
+def evaluate_run(req, info: dict, env_id: str) -> dict:
+    """``cotpc eval`` of a Moving Maze run: ``req`` an :class:`cotpc.evaluation.request.EvalRequest`, ``info`` the
+    run's config.json. Writes the per-episode JSON and prints the summary."""
+    from cotpc.policies.policy import load_policy
+
+    rules_name = req.rules or "paper"
+    if rules_name not in RULES:
+        raise SystemExit(f"cotpc eval: unknown Moving Maze rules {rules_name!r}; expected one of {', '.join(RULES)}")
+    rules = RULES[rules_name]
+    demos, weights = req.demos_and_weights(info)
+    policy = load_policy(weights, device=req.device)
+    result = evaluate(policy, demos, req.split, req.episodes, req.video, req.num_videos, rules.deadly_gaps,
+                      rules.min_action)
+    result.meta.update({"run": str(req.run), "checkpoint": req.checkpoint, "demos": str(demos)})
+    out = req.out or req.run / f"eval_{eval_name(req.split, rules.deadly_gaps, rules.min_action)}.json"
+    result.to_json(out)
+    s = result.summary()
+    print(
+        f"{req.run} [{req.split}, {rules_name} rules] success {100 * s['success_rate']:.1f}% "
+        f"(95% CI {100 * s['ci95'][0]:.1f}-{100 * s['ci95'][1]:.1f}, n={s['episodes']}), "
+        f"region transitions {s['mean_region_transitions']:.2f}/5, {s['seconds']:.2f} s -> {out}"
+    )
+    for v in s.get("videos", []):
+        print(f"  video: {v}")
+    return s
 
 
 class ReplayPolicy:

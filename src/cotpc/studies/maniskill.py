@@ -14,11 +14,16 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal, Optional
 
 import numpy as np
 
+from cotpc.demos.maniskill import ManiSkillDemos, make_demos
+from cotpc.envs.maniskill import is_maniskill_env
 from cotpc.envs.spec import env_spec, task_defaults
+from cotpc.evaluation.maniskill import evaluate_run
 from cotpc.studies.runs import cpu_count, fresh_eval, plot_learning_curves, stats, train_run
+from cotpc.studies.suites import Suite, register_suite
 
 # The paper's Table 2 (ManiSkill2, state observations, success %). Its Stack Cube number is on unseen configs;
 # its Peg Insertion number is "0-shot" (unseen peg/hole geometries). ManiSkill3's PegInsertionSide-v1 draws the
@@ -225,3 +230,66 @@ def write_report(results: dict, out: Path) -> Path:
     path = out / "report.md"
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+@dataclass
+class ManiSkillReproduce:
+    """ManiSkill3 tasks (needs `pip install -e '.[maniskill]'`): planner demos -> unsupervised subskills ->
+    training of each policy and seed -> success_once / success_at_end on seen and unseen seeds ->
+    OUT/report.md, OUT/results.json and learning curves. The defaults are the paper's schedule (meant for a GPU);
+    re-running continues an interrupted run."""
+
+    out: Path = Path("runs/maniskill")
+    """Output directory (<task>/demos/, <task>/runs/<policy>/seed<k>/, report.md, results.json)."""
+    envs: tuple[str, ...] = ("StackCube-v1", "PegInsertionSide-v1")
+    """ManiSkill3 tasks with a motion planner."""
+    policies: tuple[str, ...] = ("bc", "dt", "bet", "cotpc")
+    """Policies to train and compare."""
+    seeds: int = 3
+    """Training seeds per policy."""
+    iters: int = 200_000
+    """Training iterations per run (the paper's 200K)."""
+    batch_size: Optional[int] = None
+    """Training batch size (default: the paper's, 256; bc 32)."""
+    n_centres: Optional[int] = None
+    """k-means centres of the BeT-style heads (default: the paper's 128 for ManiSkill)."""
+    num: Optional[int] = None
+    """Training demos per task (default: the paper's, 500 Stack Cube and 1000 Peg Insertion)."""
+    test: int = 100
+    """Test demos per task: their seeds are the unseen evaluation set."""
+    seen_episodes: Optional[int] = 100
+    """Evaluate seen success on the first N training seeds (default 100; 0 = all)."""
+    control_mode: Literal["pd_joint_delta_pos", "pd_ee_delta_pose"] = "pd_joint_delta_pos"
+    """Action space of the demos and policies."""
+    horizon: Optional[int] = None
+    """Steps per evaluation episode (default: the paper's, 200)."""
+    procs: int = 2
+    """Processes for demo generation and CPU evaluation."""
+    backend: Literal["auto", "cpu", "gpu"] = "auto"
+    """Evaluation simulator: gpu = ManiSkill3's GPU-parallel simulation, cpu = process pool; auto = gpu with CUDA."""
+    device: str = "auto"
+    """Training device (auto: cuda if available)."""
+
+
+def reproduce(cfg: ManiSkillReproduce) -> dict:
+    """``cotpc reproduce maniskill``: run the study of the flags, print a summary."""
+    results = run(ManiSkillStudySettings(
+        out=cfg.out, envs=tuple(cfg.envs), policies=tuple(cfg.policies), seeds=cfg.seeds, iters=cfg.iters,
+        num=cfg.num, test=cfg.test, seen_episodes=cfg.seen_episodes or None, control_mode=cfg.control_mode,
+        horizon=cfg.horizon, procs=cfg.procs, backend=cfg.backend,
+        extra_train_args={"device": cfg.device, "batch_size": cfg.batch_size, "n_centres": cfg.n_centres},
+    ))
+    print()
+    print(f"{'task':<22}{'policy':<10}{'seen %':>10}{'unseen %':>10}   (success_once, mean over seeds)")
+    for env_id, by_policy in results.items():
+        if env_id != "meta":
+            for name, r in by_policy.items():
+                print(f"{env_id:<22}{name:<10}{r['seen']['mean']:>10.1f}{r['unseen']['mean']:>10.1f}")
+    print(f"\nreport: {cfg.out / 'report.md'}")
+    return results
+
+
+SUITE = register_suite(Suite(
+    name="maniskill", owns=is_maniskill_env, demos=ManiSkillDemos, make_demos=make_demos, evaluate=evaluate_run,
+    reproduce=ManiSkillReproduce, run_study=reproduce,
+))

@@ -13,11 +13,14 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
-from cotpc.envs.moving_maze import HORIZON, PAPER_MIN_ACTION, RULES, SPEC
-from cotpc.evaluation.maze import eval_name, evaluate, load_split_configs
+from cotpc.demos.maze import MazeDemos, make_demos
+from cotpc.envs.moving_maze import ENV_ID, HORIZON, PAPER_MIN_ACTION, RULES, SPEC
+from cotpc.evaluation.maze import eval_name, evaluate, evaluate_run, load_split_configs
+from cotpc.studies.suites import Suite, register_suite
 from cotpc.studies.runs import (
     PROTOCOL_CHECKPOINTS, cpu_count, fresh_eval, plot_learning_curves, policy_loader, stats, train_parallel, train_run,
 )
@@ -367,3 +370,107 @@ def plot_val_success(curves: dict, names: list[str], path: Path) -> Path:
     return path
 
 
+
+
+# --quick: the README's main command. A CoTPC iteration at the paper's batch 256 (context 20) takes 0.75 s on a
+# 2-core Xeon and 1.5 s on a 2-core AVX2 EPYC (docs/performance.md), so --quick trains with batch 64 for 1500
+# iterations (5-16 min per policy): a first look, not the paper's 200K-iteration schedule.
+# The short schedule. 128 k-means centres instead of the paper's 1024: with 1500 iterations the 1024-way centre
+# classifier is far from trained; 128 was chosen on the validation configs (docs/results/maze.md).
+QUICK = {"iters": 1500, "seeds": 1, "policies": ("bet", "cotpc"), "ablations": (), "batch_size": 64, "n_centres": 128}
+FULL_ITERS = 20_000
+
+
+@dataclass
+class MazeReproduce:
+    """Demos -> unsupervised subskills -> BC/DT/BeT/CoTPC (several seeds) + ablations -> seen/unseen evaluation
+    -> OUT/report.md, OUT/results.json and plots. Re-running continues an interrupted run."""
+
+    out: Path = Path("runs/maze")
+    """Output directory (demos/, runs/<policy>/seed<k>/, videos/, report.md, results.json)."""
+    seeds: int = 3
+    """Training seeds per policy (ablation presets get one seed each)."""
+    quick: bool = False
+    """Small version for a first look: BeT and CoTPC, one seed, a short schedule, no ablations."""
+    iters: Optional[int] = None
+    """Training iterations per run (default: 20000, or 1500 with --quick)."""
+    policies: Optional[tuple[str, ...]] = None
+    """Policies to compare (default: bc dt bet cotpc; with --quick: bet cotpc)."""
+    ablations: Optional[tuple[str, ...]] = None
+    """CoTPC ablation presets, one seed each (default: all nine of the paper's Table 4; none with --quick).
+    `--ablations` followed by no names runs none."""
+    beta: Optional[float] = None
+    """Subskill discovery beta (default: the maze default chosen in docs/subskills.md)."""
+    cost: Optional[str] = None
+    """Subskill segment cost, mean-cosine (the paper's) or sum-cosine (default: the maze default)."""
+    train_demos: int = 400
+    """Training demos (the seen configs)."""
+    test_demos: int = 100
+    """Test demos (the unseen configs)."""
+    val_demos: int = 100
+    """Validation configs (own seed range): evaluated and reported, for choosing settings without the test set."""
+    batch_size: Optional[int] = None
+    """Training batch size (default: the paper's 256; 64 with --quick)."""
+    n_centres: Optional[int] = None
+    """k-means centres of the BeT-style heads (bet, cotpc, ablations). Default: the paper's 1024 for its 200K
+    iterations; 128 with --quick, chosen on the validation configs for short schedules (docs/results/maze.md)."""
+    workers: int = 2
+    """Processes for demo generation."""
+    device: str = "auto"
+    """Training and evaluation device (auto: cuda if available)."""
+    jobs: int = 1
+    """Training runs at once, each in its own process with cores / jobs threads. One small model leaves a GPU
+    mostly idle: on a 16-core GPU machine, --jobs 12 trains the whole study several times sooner."""
+    keep_checkpoints: bool = False
+    """Keep every tenth-of-a-run checkpoint and evaluate each on the validation configs (success against
+    iterations, in results.json and val_success.png): choose a schedule without the test configs."""
+    cot_weight: Optional[float] = None
+    """lambda, the weight of the CoT loss of the CoT policies (default: the paper's 0.1)."""
+    grad_clip: Optional[float] = None
+    """Clip the global gradient norm of every run to this value (default: off, as the paper)."""
+
+
+def reproduce(cfg: MazeReproduce) -> dict:
+    """``cotpc reproduce maze``: resolve the flags (--quick, the task's defaults), run the study, print a summary."""
+    quick = QUICK if cfg.quick else {}
+    settings = ReproduceSettings(
+        out=cfg.out,
+        seeds=quick.get("seeds", cfg.seeds),
+        iters=cfg.iters or quick.get("iters", FULL_ITERS),
+        policies=tuple(cfg.policies or quick.get("policies", BASELINES)),
+        ablations=tuple(cfg.ablations if cfg.ablations is not None else quick.get("ablations", ABLATIONS)),
+        beta=cfg.beta if cfg.beta is not None else SPEC.defaults.beta,
+        cost=cfg.cost or SPEC.defaults.cost,
+        train_demos=cfg.train_demos,
+        test_demos=cfg.test_demos,
+        val_demos=cfg.val_demos,
+        workers=cfg.workers,
+        jobs=cfg.jobs,
+        extra_train_args={"device": cfg.device, "batch_size": cfg.batch_size or quick.get("batch_size"),
+                          "n_centres": cfg.n_centres or quick.get("n_centres"),
+                          "keep_checkpoints": cfg.keep_checkpoints, "cot_weight": cfg.cot_weight,
+                          **({"grad_clip": cfg.grad_clip} if cfg.grad_clip is not None else {})},
+    )
+    results = run(settings)
+    print()
+    print(f"{'policy':<14}{'seen %':>10}{'unseen %':>10}")
+    for name, r in results.items():
+        if name != "meta":
+            print(f"{name:<14}{r['seen']['mean']:>10.1f}{r['unseen']['mean']:>10.1f}")
+    print(f"\nreport: {cfg.out / 'report.md'}")
+    videos = sorted((cfg.out / "videos").glob("*/*.gif"))
+    if videos:
+        print(f"video:  {videos[-1]}")
+    return results
+
+
+def _subskill_plots(plot_dir: Path, episodes: list, ends: list, titles: list) -> list[Path]:
+    from cotpc.demos.maze_figure import plot_maze_paths
+
+    return [plot_maze_paths(plot_dir / "subskills_maze_paths.png", episodes, ends, titles)]
+
+
+SUITE = register_suite(Suite(
+    name="maze", owns=lambda env_id: env_id == ENV_ID, demos=MazeDemos, make_demos=make_demos,
+    evaluate=evaluate_run, reproduce=MazeReproduce, run_study=reproduce, subskill_plots=_subskill_plots,
+))

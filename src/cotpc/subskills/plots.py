@@ -1,5 +1,6 @@
 """Figures for subskill discovery (matplotlib, Agg backend): action similarity maps with the discovered
-boundaries (the paper's Fig. 3), Moving Maze paths coloured by subskill, and the beta sweep."""
+boundaries (the paper's Fig. 3) and the beta sweep. A task's own figures (the maze's paths coloured by
+subskill) live with the task's demos and are found through its suite (cotpc.studies.suites)."""
 
 from __future__ import annotations
 
@@ -42,45 +43,6 @@ def plot_similarity_maps(out: Path, actions_list, ends_list, titles, key_steps_l
     fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label="cosine similarity")
     note = "white lines: discovered boundaries" + ("; red marks: privileged key steps" if key_steps_list else "")
     fig.suptitle(f"Pairwise action cosine similarity ({note})", fontsize=9)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return out
-
-
-def plot_maze_paths(out: Path, episodes, ends_list, titles) -> Path:
-    """Moving Maze demos (obs[:, :2] = agent x, y): the path coloured by subskill, discovered key states
-    (``obs[c_i + 1]``) as circles, privileged ``key_steps`` as black crosses."""
-    try:  # the maze background, if the environment package is importable
-        from cotpc.envs.maze_figure import draw_maze
-    except ImportError:  # pragma: no cover - the figure still shows the paths
-        draw_maze = None
-    k = len(episodes)
-    fig, axes = plt.subplots(1, k, figsize=(2.4 * k, 3.6), squeeze=False)
-    cmap = plt.get_cmap("tab10")
-    for ax, ep, ends, title in zip(axes[0], episodes, ends_list, titles):
-        obs = ep.obs
-        if draw_maze is not None:
-            draw_maze(ax, obs[0])
-        else:
-            ax.set_xlim(-2, 62)
-            ax.set_ylim(-2, 82)
-            ax.set_aspect("equal")
-        start = 0
-        for s, c in enumerate(ends):  # segment s: states start .. c + 1
-            xy = obs[start : int(c) + 2, :2]
-            ax.plot(xy[:, 0], xy[:, 1], "-", color=cmap(s % 10), lw=1.6)
-            ax.plot(xy[:-1, 0], xy[:-1, 1], ".", color=cmap(s % 10), ms=3)
-            start = int(c) + 1
-        ax.plot(*obs[0, :2], "s", color="black", ms=4)
-        key = obs[key_state_indices(ends)[:-1], :2]
-        ax.plot(key[:, 0], key[:, 1], "o", mfc="none", mec="red", mew=1.5, ms=8, label="discovered key states")
-        if "key_steps" in ep.extras:
-            true = obs[np.asarray(ep.extras["key_steps"]), :2]
-            ax.plot(true[:, 0], true[:, 1], "x", color="black", mew=1.5, ms=6, label="privileged key steps")
-        ax.set_title(title, fontsize=8)
-    axes[0][0].legend(loc="lower right", fontsize=6)
-    fig.suptitle("Moving Maze demos coloured by discovered subskill", fontsize=9)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=110, bbox_inches="tight")
     plt.close(fig)

@@ -1,0 +1,62 @@
+"""What ``cotpc eval`` asks of a task suite's evaluation: one request type for every environment, so the command
+line never needs to know which environment a run was trained on (the suite registered for the run's env id
+evaluates it, :mod:`cotpc.studies.suites`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional
+
+import tyro
+
+
+@dataclass
+class EvalRequest:
+    """Roll a trained policy out on the seen, validation or unseen configs of its task and report its success
+    rate with a 95% confidence interval. The task is the one the run was trained on (its config.json)."""
+
+    run: tyro.conf.Positional[Path]
+    """Run directory written by `cotpc train` (config.json + model.safetensors)."""
+    split: Literal["seen", "val", "unseen"] = "unseen"
+    """seen = the training demos' configs; val = the validation demos' configs (for choosing settings and
+    checkpoints, where the task's demos have a validation split); unseen = the test demos' configs. The three
+    seed ranges are disjoint."""
+    episodes: Optional[int] = None
+    """Evaluate only the first N configs of the split (default: all)."""
+    demos: Optional[Path] = None
+    """Directory with the split files, train.{h5,json} and test.{h5,json} (default: the directory of the run's
+    training data)."""
+    checkpoint: Literal["last", "best"] = "last"
+    """last = the run's final weights; best = its best validation action error (never selected on test success)."""
+    video: Optional[Path] = None
+    """Write GIFs of the first --num-videos rollouts into this directory (where the task renders headless)."""
+    num_videos: int = 4
+    """How many rollouts to record with --video."""
+    rules: Optional[str] = None
+    """A rule variant of the task, where its docs define some (default: the paper's rules)."""
+    out: Optional[Path] = None
+    """Per-episode results as JSON (default: RUN/eval_<split>.json, with the rule variant in the name when not
+    the paper's)."""
+    device: str = "cpu"
+    """Device for the policy."""
+    horizon: Optional[int] = None
+    """Steps per episode (default: the task's, as in the paper)."""
+    procs: int = 1
+    """Processes for CPU simulation, each with one environment and a copy of the policy (tasks simulated one
+    environment per process)."""
+    backend: Literal["auto", "cpu", "gpu"] = "auto"
+    """Simulator, for tasks with a GPU-parallel simulation: 'gpu' = --num-envs at once (policy on --device),
+    'cpu' = process pool; 'auto' = gpu when CUDA is available."""
+    num_envs: int = 256
+    """Environments simulated at once with --backend gpu."""
+
+    def demos_and_weights(self, info: dict) -> tuple[Path, Path]:
+        """The demo directory (given, or that of the run's training data) and the checkpoint to evaluate."""
+        demos = self.demos
+        if demos is None:
+            data_path = info.get("dataset", {}).get("path")
+            if not data_path:
+                raise SystemExit(f"cotpc eval: {self.run}/config.json does not name its data; pass --demos DIR")
+            demos = Path(data_path).parent
+        return demos, (self.run if self.checkpoint == "last" else self.run / "best")
