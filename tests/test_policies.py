@@ -8,7 +8,9 @@ import pytest
 import torch
 
 from cotpc.data.dataset import Stats, WindowDataset, synthetic_trajectories
-from cotpc.policies import PRESETS, CheckpointError, Policy, get_preset, load_policy, make_model, save_checkpoint
+from cotpc.policies import (
+    PRESETS, CheckpointError, Policy, TransformerConfig, get_preset, load_policy, make_model, save_checkpoint,
+)
 from cotpc.policies.kmeans import kmeans
 
 Q, P, T = 6, 2, 4
@@ -25,7 +27,8 @@ def build(name, trajs, seed=0):
     obs = np.concatenate([e.obs[:-1] for e in trajs.episodes])
     act = np.concatenate([e.actions for e in trajs.episodes])
     stats = Stats.of(obs, act)
-    ds = WindowDataset(trajs, list(range(len(trajs))), cfg.window, stats, cfg.cot_targets, seed=seed)
+    ds = WindowDataset(trajs, list(range(len(trajs))), cfg.window, stats, cfg.cot_targets, seed=seed,
+                       future_actions=cfg.future_actions)
     torch.manual_seed(seed)
     model = make_model(cfg, Q, P, max_timestep=25)
     for name_, v in zip(("obs_mean", "obs_std", "act_mean", "act_std"), vars(stats).values()):
@@ -144,7 +147,7 @@ def _predict_from_all_tokens(model, batch):
     return model.centres[c] + offsets[torch.arange(len(c)), c]
 
 
-@pytest.mark.parametrize("name", [n for n in PRESETS if n != "bc"])
+@pytest.mark.parametrize("name", [n for n, c in PRESETS.items() if isinstance(c, TransformerConfig)])
 def test_inference_computes_only_the_tokens_it_reads_with_the_same_result(name, trajs):
     # predict() runs the last block on 1-3 tokens; it must equal the full computation, with and without
     # left padding (window starts before the episode) and with trained-looking (non-zero) weights.
@@ -160,7 +163,7 @@ def test_inference_computes_only_the_tokens_it_reads_with_the_same_result(name, 
         torch.testing.assert_close(model.predict(full), _predict_from_all_tokens(model, full))
 
 
-@pytest.mark.parametrize("name", [n for n in PRESETS if n != "bc"])
+@pytest.mark.parametrize("name", [n for n, c in PRESETS.items() if isinstance(c, TransformerConfig)])
 def test_context_one_trains_and_acts(name, trajs):
     """Context 1 (no history: only the current state, plus the CoT tokens) is a valid setting for every
     transformer preset: a training step and control work."""

@@ -108,7 +108,8 @@ def policy_step(name: str, setting: str, bf16: Optional[bool]) -> tuple[Callable
     trajs = synthetic_trajectories(64, s["obs_dim"], s["action_dim"], s["length"], n_segments=4, seed=0)
     obs = np.concatenate([e.obs[:-1] for e in trajs.episodes])
     act = np.concatenate([e.actions for e in trajs.episodes])
-    ds = WindowDataset(trajs, list(range(len(trajs))), pcfg.window, Stats.of(obs, act), pcfg.cot_targets)
+    ds = WindowDataset(trajs, list(range(len(trajs))), pcfg.window, Stats.of(obs, act), pcfg.cot_targets,
+                       future_actions=pcfg.future_actions)
     torch.manual_seed(0)
     model = make_model(pcfg, s["obs_dim"], s["action_dim"], s["length"] + 1)
     if pcfg.n_kmeans_centres:

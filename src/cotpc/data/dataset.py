@@ -4,6 +4,8 @@ All timesteps of all episodes are concatenated once into ``(S, q)`` / ``(S, p)``
 a single gather with an index matrix ``end[:, None] - (T-1) + arange(T)`` — no per-sample Python. A window
 that would start before its episode is left-padded (``valid`` False; the padded entries hold the episode's
 first step, and the model masks them out).
+With ``future_actions`` F > 0 a window also carries the F actions after its last one (Diffusion Policy's action
+chunks); past the episode's end they repeat its last action.
 """
 
 from __future__ import annotations
@@ -89,6 +91,7 @@ class WindowDataset:
         seed: int = 0,
         device: str | torch.device = "cpu",
         where: str = "data",
+        future_actions: int = 0,
     ):
         eps = [trajs.episodes[i] for i in episodes]
         if not eps:
@@ -103,6 +106,8 @@ class WindowDataset:
         self.actions = ((torch.as_tensor(act) - stats.act_mean) / stats.act_std).to(dev)
         self.timesteps = torch.as_tensor(np.concatenate([np.arange(n) for n in lengths])).to(dev)
         self.ep_start = torch.as_tensor(np.repeat(starts, lengths)).to(dev)
+        self.ep_last = torch.as_tensor(np.repeat(starts + lengths - 1, lengths)).to(dev)
+        self.future = torch.arange(1, future_actions + 1, device=dev)  # offsets of the future actions
         self.cot = None
         if cot_targets:
             rng = np.random.default_rng(seed)
@@ -130,6 +135,9 @@ class WindowDataset:
         }
         if self.cot is not None:
             batch["cot"] = self.cot[idx]
+        if len(self.future):  # a(t+1) .. a(t+F), the episode's last action repeated past its end
+            future = torch.minimum(ends[:, None] + self.future, self.ep_last[ends][:, None])
+            batch["future_actions"] = self.actions[future]
         return batch
 
     def sample(self, batch_size: int, generator: torch.Generator) -> dict[str, torch.Tensor]:

@@ -2,9 +2,10 @@
 
 A family is one config dataclass (deriving from :class:`BaseConfig`) and one model class (an ``nn.Module`` built
 as ``Model(cfg, obs_dim, action_dim, max_timestep)``), registered once with :func:`register_family` by the module
-that defines them: the transformer (:mod:`cotpc.policies.model`: DT, BeT, CoTPC and the ablations as presets)
-and the Markovian MLP (:mod:`cotpc.policies.mlp`). :func:`make_model`, the checkpoint format (``config.json``
-names the family) and :func:`cotpc.load_policy` find it here.
+that defines them: the transformer (:mod:`cotpc.policies.model`: DT, BeT, CoTPC and the ablations as presets),
+the Markovian MLP (:mod:`cotpc.policies.mlp`) and Diffusion Policy (:mod:`cotpc.policies.diffusion`).
+:func:`make_model`, the checkpoint format (``config.json`` names the family) and :func:`cotpc.load_policy` find
+it here.
 """
 
 from __future__ import annotations
@@ -43,6 +44,12 @@ class BaseConfig:
     def window(self) -> int:
         """Timesteps per training window."""
         return 1
+
+    @property
+    def future_actions(self) -> int:
+        """Actions after the window's last one a training window must also carry (``future_actions``, (B, F, p):
+        a(t+1) .. a(t+F), the episode's last action repeated past its end); 0: none. Diffusion Policy's chunks."""
+        return 0
 
     @property
     def cot_targets(self) -> tuple[str, ...]:

@@ -2,7 +2,8 @@
 
 The baselines (DT, BeT) and the ablations of paper Table 4 are *settings* of one transformer
 (:mod:`cotpc.policies.transformer`, :mod:`cotpc.policies.model`), not separate models; only ``decoupled`` (which
-adds a second transformer for the CoT) differs in structure. ``bc`` is its own family (:mod:`cotpc.policies.mlp`).
+adds a second transformer for the CoT) differs in structure. ``bc`` is its own family (:mod:`cotpc.policies.mlp`),
+and so is ``dp``, Diffusion Policy (:mod:`cotpc.policies.diffusion`).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from cotpc.policies.base import BaseConfig
+from cotpc.policies.diffusion import DPConfig
 from cotpc.policies.mlp import MLPConfig
 
 Source = Literal["state", "cot", "action"]
@@ -27,7 +29,7 @@ class TransformerConfig(BaseConfig):
 
     # --- transformer backbone ---
     context: int = 10
-    """Context size T: timesteps of state (and action) history in a window (paper: 10 ManiSkill, 20 maze)."""
+    """Context size T: timesteps of state (and action) history in a window (default: the task's, cotpc.envs.spec.task_defaults)."""
     d_model: int = 128
     """Embedding size."""
     n_layers: int = 4
@@ -55,7 +57,7 @@ class TransformerConfig(BaseConfig):
     offset_from: Source = "state"
     """Token features the offset regressor reads for timestep i (``cot``: the i-th CoT token)."""
     n_centres: int = 128
-    """k-means clusters K of the normalised actions (paper: 128 ManiSkill, 1024 maze/kitchen)."""
+    """k-means clusters K of the normalised actions (default: the task's, cotpc.envs.spec.task_defaults)."""
     offset_weight: float = 100.0
     """Weight of the offset MSE relative to the centre cross-entropy (paper: 100)."""
     cot_targets: tuple[CotTarget, ...] = ()  # type: ignore[assignment]  (a field here, a property in BaseConfig)
@@ -119,6 +121,7 @@ PRESETS: dict[str, BaseConfig] = {
     "bc": MLPConfig(),
     "dt": TransformerConfig(name="dt", action_head="mse"),
     "bet": TransformerConfig(name="bet", action_head="bet"),
+    "dp": DPConfig(),  # Diffusion Policy, ~1.2M parameters as in the paper
     # The method.
     "cotpc": _COTPC,
     # The method without the hybrid mask's target leak: CoT token i sees only what is known at window index i.

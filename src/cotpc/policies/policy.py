@@ -93,6 +93,11 @@ class Policy:
     ``reset()`` clears every environment's context; ``reset(envs)`` only those given as a boolean mask or
     indices (for vectorised environments that finish at different times).
 
+    A model that samples action chunks (``predict_chunk``: Diffusion Policy) keeps a queue of actions per
+    environment: an environment whose queue is empty plans (one sampler call for all environments that need
+    it) from its last ``cfg.window`` states, the first one repeated before its episode's start, and its next
+    ``action_horizon`` calls pop the chunk. ``reset(envs)`` empties those environments' queues and histories.
+
     At batch 1 a step is ~150 small ops, so their count matters more than their arithmetic: on a CPU the
     windows, step counters and (de)normalisation are NumPy (a small NumPy op costs a fraction of a torch op),
     the attention mask of a partly filled context is looked up (:meth:`GPT.inference_bias`) and the network
@@ -108,10 +113,11 @@ class Policy:
         self.obs_dim, self.action_dim = model.obs_dim, model.action_dim
         self.T = self.cfg.window
         self._transformer = isinstance(model, TransformerPolicy)
+        self._chunked = hasattr(model, "predict_chunk")  # action chunks with a queue per environment
         n = model.norm
         self._obs_mean, self._obs_std, self._act_mean, self._act_std = n.obs_mean, n.obs_std, n.act_mean, n.act_std
-        if self.device.type == "cpu":  # NumPy views of the same buffers
-            self._np_stats = tuple(x.numpy() for x in (n.obs_mean, n.obs_std, n.act_mean, n.act_std))
+        if self.device.type == "cpu" or self._chunked:  # NumPy views of the same buffers (copies on a GPU)
+            self._np_stats = tuple(x.cpu().numpy() for x in (n.obs_mean, n.obs_std, n.act_mean, n.act_std))
         self._window_steps = np.arange(self.T) - (self.T - 1)  # timestep of each window index, minus the last
         self._states = None  # (B, T, q) normalised, oldest first (NumPy on a CPU)
         self._actions = None  # (B, T, p) normalised; the last slot is the action just taken (NumPy on a CPU)
@@ -131,9 +137,16 @@ class Policy:
             raise ValueError(f"reset mask has {idx.shape[0]} entries for {self._states.shape[0]} environments")
         self._t[idx] = 0
         self._n[idx] = 0
+        if self._chunked:
+            self._queued[idx] = 0
 
     def _allocate(self, B: int) -> None:
-        if self.device.type == "cpu":
+        if self._chunked:  # NumPy bookkeeping on any device: the sampler's network calls dominate
+            self._states = np.zeros((B, self.T, self.obs_dim), dtype=np.float32)
+            H = self.cfg.action_horizon
+            self._queue = np.zeros((B, H, self.action_dim), dtype=np.float32)  # normalised actions to execute
+            self._queued = np.zeros(B, dtype=np.int64)  # actions left in each queue (taken from the back)
+        elif self.device.type == "cpu":
             self._states = np.zeros((B, self.T, self.obs_dim), dtype=np.float32)
             self._actions = np.zeros((B, self.T, self.action_dim), dtype=np.float32)
         else:
@@ -157,9 +170,32 @@ class Policy:
             self._allocate(B)
         elif B != self._states.shape[0]:
             raise ValueError(f"got {B} observations for {self._states.shape[0]} environments; call reset() first")
+        if self._chunked:
+            return self._step_chunked(obs)
         if self.device.type == "cpu":
             return self._step_cpu(obs)
         return self._step(torch.as_tensor(obs, device=self.device))
+
+    def _step_chunked(self, obs: np.ndarray) -> np.ndarray:
+        """One step of a chunking policy: every environment's state history moves on; those with an empty queue
+        sample a new chunk (batched); each environment executes the next action of its queue."""
+        obs_mean, obs_std, act_mean, act_std = self._np_stats
+        s = (obs - obs_mean) / obs_std
+        self._states[:, :-1] = self._states[:, 1:]
+        self._states[:, -1] = s
+        fresh = self._n == 0  # an episode's first step: the history before it repeats the first state
+        self._states[fresh] = s[fresh, None]
+        plan = np.flatnonzero(self._queued == 0)
+        if len(plan):
+            states = torch.from_numpy(self._states[plan]).to(self.device)
+            self._queue[plan] = self.model.predict_chunk(states).float().cpu().numpy()
+            self._queued[plan] = self._queue.shape[1]
+        B = obs.shape[0]
+        a = self._queue[np.arange(B), self._queue.shape[1] - self._queued]
+        self._queued -= 1
+        self._t += 1
+        self._n += 1
+        return a * act_std + act_mean
 
     def _step_cpu(self, obs: np.ndarray) -> np.ndarray:
         """One step on a CPU: the window bookkeeping in NumPy (each small NumPy op costs a fraction of a torch

@@ -47,16 +47,15 @@ class TrainConfig:
     data: Path
     """Trajectory file (NAME.h5 with NAME.json beside it); CoT policies need `cotpc segment` run on it first."""
     policy: PolicyName = "cotpc"  # type: ignore[valid-type]
-    """Policy preset: baselines bc/dt/bet, the method cotpc, or one of the paper's ablations."""
+    """Policy preset: baselines bc/dt/bet/dp (Diffusion Policy), the method cotpc, or one of the paper's ablations."""
     out: Path = Path("runs/train")
     """Run directory (checkpoints, best/, tb/)."""
     iters: int = 20_000
-    """Training iterations (paper: 200K maze, 100K-500K ManiSkill; fewer here for a CPU)."""
+    """Training iterations (the paper: 100K-500K by task; fewer here for a CPU)."""
     seed: int = 0
     """Seed for the train/val split, k-means, initialisation and batch sampling."""
     context: Optional[int] = None
-    """Context size T (default: the task's, cotpc.envs.task_defaults: 20 for Moving Maze, 10 otherwise, as in the
-    paper)."""
+    """Context size T (default: the task's, cotpc.envs.spec.task_defaults, as in the paper)."""
     batch_size: Optional[int] = None
     """Global batch size (default: the preset's, 256; 32 for bc)."""
     lr: Optional[float] = None
@@ -68,7 +67,7 @@ class TrainConfig:
     weight_decay: Optional[float] = None
     """AdamW weight decay of the matrices (default 1e-4; 0 for bc)."""
     n_centres: Optional[int] = None
-    """k-means centres K for bet/cotpc (default: the task's, 1024 maze, 128 otherwise)."""
+    """k-means centres K for bet/cotpc (default: the task's, cotpc.envs.spec.task_defaults, as in the paper)."""
     cot_layer: Optional[int] = None
     """Block whose CoT features feed the CoT decoder (default -1, the last)."""
     d_model: Optional[int] = None
@@ -215,6 +214,9 @@ def train_step(train_model: nn.Module, params, batch: dict, optimizer, scheduler
         nn.utils.clip_grad_norm_(params, grad_clip)
     optimizer.step()
     scheduler.step()
+    after_step = getattr(getattr(train_model, "module", train_model), "after_optimizer_step", None)
+    if after_step is not None:  # e.g. Diffusion Policy's EMA of the weights
+        after_step()
     return loss, metrics
 
 
@@ -287,13 +289,14 @@ def train(config: TrainConfig) -> Path:
     act_all = np.concatenate([trajs.episodes[i].actions for i in train_eps])
     stats = Stats.of(obs_all, act_all)
     where = str(config.data)
-    ds = WindowDataset(trajs, train_eps, cfg.window, stats, cfg.cot_targets, config.seed, device, where)
-    val_ds = WindowDataset(trajs, val_eps, cfg.window, stats, cfg.cot_targets, config.seed + 1, device, where) \
+    fut = cfg.future_actions  # action chunks (Diffusion Policy); 0 for the other families
+    ds = WindowDataset(trajs, train_eps, cfg.window, stats, cfg.cot_targets, config.seed, device, where, fut)
+    val_ds = WindowDataset(trajs, val_eps, cfg.window, stats, cfg.cot_targets, config.seed + 1, device, where, fut) \
         if len(val_eps) else None
     q, p = trajs.obs_dim, trajs.action_dim
     # One timestep-embedding row per step seen in training (states 0..N-1 of the longest demo): every row gets
     # a gradient, and a rollout that runs past the longest demo reads the last trained row (GPT clamps), never
-    # an untrained one (ManiSkill rollouts run to 200 steps, Stack Cube demos ~108).
+    # an untrained one (evaluation horizons can be twice the mean demo length).
     max_timestep = max(ep.num_steps for ep in trajs.episodes)
 
     # --- model (identical on every rank: same seed; DDP also broadcasts rank 0's) ---
