@@ -136,3 +136,20 @@ def test_eval_cli_on_a_trained_run(demo_dir, tmp_path, capsys):
     cotpc_main(["eval", str(run), "--split", "val"])
     saved = json.loads((run / "eval_val.json").read_text())
     assert saved["summary"]["episodes"] == 5 and all(1_000_000 <= e["seed"] < 2_000_000 for e in saved["episodes"])
+
+
+def test_eval_cli_sampler_steps_for_a_diffusion_policy(demo_dir, tmp_path):
+    run = tmp_path / "dp"
+    cotpc_main(["train", "--data", str(demo_dir / "train.h5"), "--policy", "dp", "--out", str(run), "--iters", "2",
+                "--batch-size", "16", "--bf16", "False", "--threads", "1", "--no-progress"])
+    cotpc_main(["eval", str(run), "--split", "val", "--episodes", "2", "--sampler-steps", "3"])
+    saved = json.loads((run / "eval_val_steps3.json").read_text())  # beside, never over, the run's own evaluation
+    assert saved["summary"]["sampler_steps"] == 3 and saved["summary"]["episodes"] == 2
+    assert not (run / "eval_val.json").exists()
+    with pytest.raises(SystemExit, match="inference_steps"):
+        cotpc_main(["eval", str(run), "--split", "val", "--episodes", "1", "--sampler-steps", "1000"])
+    bc = tmp_path / "bc"
+    cotpc_main(["train", "--data", str(demo_dir / "train.h5"), "--policy", "bc", "--out", str(bc), "--iters", "2",
+                "--no-progress"])
+    with pytest.raises(SystemExit, match="diffusion policies"):
+        cotpc_main(["eval", str(bc), "--split", "val", "--episodes", "1", "--sampler-steps", "3"])

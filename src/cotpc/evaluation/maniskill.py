@@ -292,12 +292,14 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
         raise SystemExit("cotpc eval: --video needs a render device for ManiSkill3 tasks; not supported yet")
     demos, weights = req.demos_and_weights(info)
     device = req.device if req.backend != "cpu" else "cpu"
-    result = evaluate(policy_loader(weights, device), demos, req.split, req.episodes, horizon=req.horizon,
-                      procs=req.procs, backend=req.backend, num_envs=req.num_envs)
+    result = evaluate(policy_loader(weights, device, req.sampler_steps), demos, req.split, req.episodes,
+                      horizon=req.horizon, procs=req.procs, backend=req.backend, num_envs=req.num_envs)
     if result.env_id != env_id:
         raise SystemExit(f"cotpc eval: {req.run} was trained on {env_id} but {demos} holds {result.env_id} demos")
-    result.meta.update({"run": str(req.run), "checkpoint": req.checkpoint, "demos": str(demos)})
-    out = req.out or req.run / f"eval_{req.split}.json"
+    result.meta.update({"run": str(req.run), "checkpoint": req.checkpoint, "demos": str(demos),
+                        "sampler_steps": req.sampler_steps})
+    steps = f"_steps{req.sampler_steps}" if req.sampler_steps else ""  # never overwrite the run's own evaluation
+    out = req.out or req.run / f"eval_{req.split}{steps}.json"
     result.to_json(out)
     s = result.summary()
     lo1, hi1 = s["success_once_ci95"]
@@ -310,11 +312,12 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
     return s
 
 
-def policy_loader(run_dir: str | Path, device: str = "cpu") -> Callable[[], Any]:
-    """A picklable factory loading ``run_dir`` with :func:`cotpc.load_policy` (one copy per process)."""
-    from cotpc.policies.policy import load_policy
+def policy_loader(run_dir: str | Path, device: str = "cpu", sampler_steps: int | None = None) -> Callable[[], Any]:
+    """A picklable factory loading ``run_dir`` with :func:`cotpc.load_policy` (one copy per process); with
+    ``sampler_steps``, a diffusion policy samples with that many DDIM steps."""
+    from cotpc.evaluation.request import load_for_eval
 
-    return functools.partial(load_policy, str(run_dir), device=device)
+    return functools.partial(load_for_eval, str(run_dir), device, sampler_steps)
 
 
 class ReplayPolicy:

@@ -182,18 +182,20 @@ def evaluate(
 def evaluate_run(req, info: dict, env_id: str) -> dict:
     """``cotpc eval`` of a Moving Maze run: ``req`` an :class:`cotpc.evaluation.request.EvalRequest`, ``info`` the
     run's config.json. Writes the per-episode JSON and prints the summary."""
-    from cotpc.policies.policy import load_policy
+    from cotpc.evaluation.request import load_for_eval
 
     rules_name = req.rules or "paper"
     if rules_name not in RULES:
         raise SystemExit(f"cotpc eval: unknown Moving Maze rules {rules_name!r}; expected one of {', '.join(RULES)}")
     rules = RULES[rules_name]
     demos, weights = req.demos_and_weights(info)
-    policy = load_policy(weights, device=req.device)
+    policy = load_for_eval(weights, req.device, req.sampler_steps)
     result = evaluate(policy, demos, req.split, req.episodes, req.video, req.num_videos, rules.deadly_gaps,
                       rules.min_action)
-    result.meta.update({"run": str(req.run), "checkpoint": req.checkpoint, "demos": str(demos)})
-    out = req.out or req.run / f"eval_{eval_name(req.split, rules.deadly_gaps, rules.min_action)}.json"
+    result.meta.update({"run": str(req.run), "checkpoint": req.checkpoint, "demos": str(demos),
+                        "sampler_steps": req.sampler_steps})
+    steps = f"_steps{req.sampler_steps}" if req.sampler_steps else ""  # never overwrite the run's own evaluation
+    out = req.out or req.run / f"eval_{eval_name(req.split, rules.deadly_gaps, rules.min_action)}{steps}.json"
     result.to_json(out)
     s = result.summary()
     print(

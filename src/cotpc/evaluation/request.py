@@ -50,6 +50,9 @@ class EvalRequest:
     'cpu' = process pool; 'auto' = gpu when CUDA is available."""
     num_envs: int = 256
     """Environments simulated at once with --backend gpu."""
+    sampler_steps: Optional[int] = None
+    """Denoising steps at inference, for the diffusion policies (dp, dd): DDIM with this many steps instead of
+    the run's ``inference_steps`` (fewer: faster control, maybe lower success)."""
 
     def demos_and_weights(self, info: dict) -> tuple[Path, Path]:
         """The demo directory (given, or that of the run's training data) and the checkpoint to evaluate."""
@@ -60,3 +63,20 @@ class EvalRequest:
                 raise SystemExit(f"cotpc eval: {self.run}/config.json does not name its data; pass --demos DIR")
             demos = Path(data_path).parent
         return demos, (self.run if self.checkpoint == "last" else self.run / "best")
+
+
+def load_for_eval(run_dir: str | Path, device: str = "cpu", sampler_steps: Optional[int] = None):
+    """:func:`cotpc.load_policy`, with the diffusion sampler's step count replaced when ``sampler_steps`` is set
+    (module level, so a process pool can pickle a ``functools.partial`` of it)."""
+    from cotpc.policies.policy import load_policy
+
+    policy = load_policy(run_dir, device=device)
+    if sampler_steps is not None:
+        cfg = policy.model.cfg
+        if not hasattr(cfg, "inference_steps"):
+            raise SystemExit(f"cotpc eval: --sampler-steps is for the diffusion policies; {run_dir} is {cfg.name!r}")
+        try:
+            policy.model.cfg = cfg.replace(inference_steps=sampler_steps)
+        except ValueError as e:
+            raise SystemExit(f"cotpc eval: --sampler-steps {sampler_steps}: {e}") from None
+    return policy
