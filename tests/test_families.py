@@ -17,10 +17,10 @@ from cotpc.policies.base import Normaliser
 
 
 def test_every_preset_belongs_to_a_family_and_round_trips():
-    assert set(FAMILIES) >= {"transformer", "mlp", "diffusion"}
+    assert set(FAMILIES) >= {"transformer", "mlp", "diffusion", "decision-diffuser"}
     for name, cfg in PRESETS.items():
         saved = config_to_dict(cfg)
-        assert saved["family"] == {"bc": "mlp", "dp": "diffusion"}.get(name, "transformer")
+        assert saved["family"] == {"bc": "mlp", "dp": "diffusion", "dd": "decision-diffuser"}.get(name, "transformer")
         assert config_from_dict(json.loads(json.dumps(saved))) == cfg  # through JSON: tuples come back as lists
     assert isinstance(PRESETS["bc"], MLPConfig) and isinstance(PRESETS["cotpc"], TransformerConfig)
     # a setting the family does not have is ignored (the trainer passes the task's context to every policy)

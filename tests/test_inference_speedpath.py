@@ -94,7 +94,8 @@ def run_both(model, B, steps=16, resets=((7, [0, 2]), (11, [1]))):
 
 
 @pytest.mark.parametrize("B", [1, 5])
-@pytest.mark.parametrize("name", [n for n in PRESETS if n != "dp"])  # dp: tests/test_diffusion_policy.py
+# dp, dd sample: tests/test_diffusion_policy.py, tests/test_decision_diffuser.py
+@pytest.mark.parametrize("name", [n for n in PRESETS if n not in ("dp", "dd")])
 def test_select_action_equals_the_training_forward(name, B):
     assert run_both(tiny_model(name), B) < 1e-5
 

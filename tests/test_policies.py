@@ -14,7 +14,8 @@ from cotpc.policies import (
 from cotpc.policies.kmeans import kmeans
 
 Q, P, T = 6, 2, 4
-TINY = {"context": T, "d_model": 32, "n_heads": 4, "n_layers": 2, "n_centres": 8, "hidden": 64}
+TINY = {"context": T, "d_model": 32, "n_heads": 4, "n_layers": 2, "n_centres": 8, "hidden": 64,
+        "history": T}  # history: Decision Diffuser's context
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +29,7 @@ def build(name, trajs, seed=0):
     act = np.concatenate([e.actions for e in trajs.episodes])
     stats = Stats.of(obs, act)
     ds = WindowDataset(trajs, list(range(len(trajs))), cfg.window, stats, cfg.cot_targets, seed=seed,
-                       future_actions=cfg.future_actions)
+                       future_actions=cfg.future_actions, future_states=cfg.future_states)
     torch.manual_seed(seed)
     model = make_model(cfg, Q, P, max_timestep=25)
     for name_, v in zip(("obs_mean", "obs_std", "act_mean", "act_std"), vars(stats).values()):

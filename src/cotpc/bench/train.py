@@ -109,7 +109,7 @@ def policy_step(name: str, setting: str, bf16: Optional[bool]) -> tuple[Callable
     obs = np.concatenate([e.obs[:-1] for e in trajs.episodes])
     act = np.concatenate([e.actions for e in trajs.episodes])
     ds = WindowDataset(trajs, list(range(len(trajs))), pcfg.window, Stats.of(obs, act), pcfg.cot_targets,
-                       future_actions=pcfg.future_actions)
+                       future_actions=pcfg.future_actions, future_states=pcfg.future_states)
     torch.manual_seed(0)
     model = make_model(pcfg, s["obs_dim"], s["action_dim"], s["length"] + 1)
     if pcfg.n_kmeans_centres:

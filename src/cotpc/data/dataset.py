@@ -5,7 +5,9 @@ a single gather with an index matrix ``end[:, None] - (T-1) + arange(T)`` — no
 that would start before its episode is left-padded (``valid`` False; the padded entries hold the episode's
 first step, and the model masks them out).
 With ``future_actions`` F > 0 a window also carries the F actions after its last one (Diffusion Policy's action
-chunks); past the episode's end they repeat its last action.
+chunks); past the episode's end they repeat its last action. With ``future_states`` F > 0 it carries the F states
+after its last one, s(t+1) .. s(t+F) (Decision Diffuser's plans), the episode's final observation s(N) included;
+past it they repeat s(N).
 """
 
 from __future__ import annotations
@@ -92,6 +94,7 @@ class WindowDataset:
         device: str | torch.device = "cpu",
         where: str = "data",
         future_actions: int = 0,
+        future_states: int = 0,
     ):
         eps = [trajs.episodes[i] for i in episodes]
         if not eps:
@@ -108,6 +111,13 @@ class WindowDataset:
         self.ep_start = torch.as_tensor(np.repeat(starts, lengths)).to(dev)
         self.ep_last = torch.as_tensor(np.repeat(starts + lengths - 1, lengths)).to(dev)
         self.future = torch.arange(1, future_actions + 1, device=dev)  # offsets of the future actions
+        self.future_s = torch.arange(1, future_states + 1, device=dev)  # offsets of the future states
+        if future_states:
+            # every observation s(0..N) of each episode, normalised: self.obs lacks the final s(N), which has no
+            # action but is the target of the last transition; row of s(t) = flat index of t + episode number
+            all_obs = np.concatenate([ep.obs for ep in eps])
+            self.all_obs = ((torch.as_tensor(all_obs) - stats.obs_mean) / stats.obs_std).to(dev)
+            self.ep_number = torch.as_tensor(np.repeat(np.arange(len(eps)), lengths)).to(dev)
         self.cot = None
         if cot_targets:
             rng = np.random.default_rng(seed)
@@ -138,6 +148,10 @@ class WindowDataset:
         if len(self.future):  # a(t+1) .. a(t+F), the episode's last action repeated past its end
             future = torch.minimum(ends[:, None] + self.future, self.ep_last[ends][:, None])
             batch["future_actions"] = self.actions[future]
+        if len(self.future_s):  # s(t+1) .. s(t+F), the episode's final state s(N) repeated past its end
+            row = ends + self.ep_number[ends]  # row of s(t) in all_obs
+            final = self.ep_last[ends] + self.ep_number[ends] + 1  # row of s(N)
+            batch["future_states"] = self.all_obs[torch.minimum(row[:, None] + self.future_s, final[:, None])]
         return batch
 
     def sample(self, batch_size: int, generator: torch.Generator) -> dict[str, torch.Tensor]:

@@ -1,8 +1,10 @@
 """Policies: families (a config dataclass and a model each, registered once: the transformer with DT, BeT, CoTPC
-and the ablations as presets; the BC MLP; Diffusion Policy), the presets by name, and the inference wrapper."""
+and the ablations as presets; the BC MLP; Diffusion Policy; Decision Diffuser), the presets by name, and the
+inference wrapper."""
 
 from cotpc.policies.base import FAMILIES, BaseConfig, config_from_dict, config_to_dict, make_model, register_family
 from cotpc.policies.config import PRESETS, TransformerConfig, get_preset
+from cotpc.policies.decision_diffuser import DDConfig, DecisionDiffuser
 from cotpc.policies.diffusion import DiffusionPolicy, DPConfig
 from cotpc.policies.mlp import MLPConfig, MLPPolicy
 from cotpc.policies.model import TransformerPolicy
@@ -13,6 +15,8 @@ __all__ = [
     "PRESETS",
     "BaseConfig",
     "CheckpointError",
+    "DDConfig",
+    "DecisionDiffuser",
     "DPConfig",
     "DiffusionPolicy",
     "MLPConfig",

@@ -3,7 +3,8 @@
 A family is one config dataclass (deriving from :class:`BaseConfig`) and one model class (an ``nn.Module`` built
 as ``Model(cfg, obs_dim, action_dim, max_timestep)``), registered once with :func:`register_family` by the module
 that defines them: the transformer (:mod:`cotpc.policies.model`: DT, BeT, CoTPC and the ablations as presets),
-the Markovian MLP (:mod:`cotpc.policies.mlp`) and Diffusion Policy (:mod:`cotpc.policies.diffusion`).
+the Markovian MLP (:mod:`cotpc.policies.mlp`), Diffusion Policy (:mod:`cotpc.policies.diffusion`) and Decision
+Diffuser (:mod:`cotpc.policies.decision_diffuser`).
 :func:`make_model`, the checkpoint format (``config.json`` names the family) and :func:`cotpc.load_policy` find
 it here.
 """
@@ -49,6 +50,13 @@ class BaseConfig:
     def future_actions(self) -> int:
         """Actions after the window's last one a training window must also carry (``future_actions``, (B, F, p):
         a(t+1) .. a(t+F), the episode's last action repeated past its end); 0: none. Diffusion Policy's chunks."""
+        return 0
+
+    @property
+    def future_states(self) -> int:
+        """States after the window's last one a training window must also carry (``future_states``, (B, F, q):
+        s(t+1) .. s(t+F), the episode's final observation repeated past its end); 0: none. Decision Diffuser's
+        plans."""
         return 0
 
     @property

@@ -3,7 +3,8 @@
 The baselines (DT, BeT) and the ablations of paper Table 4 are *settings* of one transformer
 (:mod:`cotpc.policies.transformer`, :mod:`cotpc.policies.model`), not separate models; only ``decoupled`` (which
 adds a second transformer for the CoT) differs in structure. ``bc`` is its own family (:mod:`cotpc.policies.mlp`),
-and so is ``dp``, Diffusion Policy (:mod:`cotpc.policies.diffusion`).
+and so are ``dp``, Diffusion Policy (:mod:`cotpc.policies.diffusion`), and ``dd``, Decision Diffuser
+(:mod:`cotpc.policies.decision_diffuser`).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 from cotpc.policies.base import BaseConfig
+from cotpc.policies.decision_diffuser import DDConfig
 from cotpc.policies.diffusion import DPConfig
 from cotpc.policies.mlp import MLPConfig
 
@@ -122,6 +124,7 @@ PRESETS: dict[str, BaseConfig] = {
     "dt": TransformerConfig(name="dt", action_head="mse"),
     "bet": TransformerConfig(name="bet", action_head="bet"),
     "dp": DPConfig(),  # Diffusion Policy, ~1.2M parameters as in the paper
+    "dd": DDConfig(),  # Decision Diffuser, ~1.6M parameters, context 20, horizon 4, as in the paper
     # The method.
     "cotpc": _COTPC,
     # The method without the hybrid mask's target leak: CoT token i sees only what is known at window index i.

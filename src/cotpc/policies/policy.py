@@ -93,10 +93,12 @@ class Policy:
     ``reset()`` clears every environment's context; ``reset(envs)`` only those given as a boolean mask or
     indices (for vectorised environments that finish at different times).
 
-    A model that samples action chunks (``predict_chunk``: Diffusion Policy) keeps a queue of actions per
+    A model that plans action chunks from a state history (``predict_chunk``: Diffusion Policy, and Decision
+    Diffuser, whose chunk is the inverse dynamics of its planned states) keeps a queue of actions per
     environment: an environment whose queue is empty plans (one sampler call for all environments that need
-    it) from its last ``cfg.window`` states, the first one repeated before its episode's start, and its next
-    ``action_horizon`` calls pop the chunk. ``reset(envs)`` empties those environments' queues and histories.
+    it) from its last ``cfg.window`` states, the first one repeated before its episode's start (the start padding
+    of both), and its next ``action_horizon`` calls pop the chunk (one call for Decision Diffuser, which plans at
+    every step). ``reset(envs)`` empties those environments' queues and histories.
 
     At batch 1 a step is ~150 small ops, so their count matters more than their arithmetic: on a CPU the
     windows, step counters and (de)normalisation are NumPy (a small NumPy op costs a fraction of a torch op),

@@ -57,7 +57,7 @@ class TrainConfig:
     context: Optional[int] = None
     """Context size T (default: the task's, cotpc.envs.spec.task_defaults, as in the paper)."""
     batch_size: Optional[int] = None
-    """Global batch size (default: the preset's, 256; 32 for bc)."""
+    """Global batch size (default: the preset's: 256; bc 32, dd 64)."""
     lr: Optional[float] = None
     """Peak learning rate (default: the preset's, 5e-4; 1e-3 for bc)."""
     min_lr: Optional[float] = None
@@ -290,9 +290,10 @@ def train(config: TrainConfig) -> Path:
     stats = Stats.of(obs_all, act_all)
     where = str(config.data)
     fut = cfg.future_actions  # action chunks (Diffusion Policy); 0 for the other families
-    ds = WindowDataset(trajs, train_eps, cfg.window, stats, cfg.cot_targets, config.seed, device, where, fut)
-    val_ds = WindowDataset(trajs, val_eps, cfg.window, stats, cfg.cot_targets, config.seed + 1, device, where, fut) \
-        if len(val_eps) else None
+    fut_s = cfg.future_states  # planned states (Decision Diffuser); 0 for the other families
+    ds = WindowDataset(trajs, train_eps, cfg.window, stats, cfg.cot_targets, config.seed, device, where, fut, fut_s)
+    val_ds = WindowDataset(trajs, val_eps, cfg.window, stats, cfg.cot_targets, config.seed + 1, device, where, fut,
+                           fut_s) if len(val_eps) else None
     q, p = trajs.obs_dim, trajs.action_dim
     # One timestep-embedding row per step seen in training (states 0..N-1 of the longest demo): every row gets
     # a gradient, and a rollout that runs past the longest demo reads the last trained row (GPT clamps), never
