@@ -130,19 +130,26 @@ def test_time_alternating_alternates_and_counts():
 def test_choose_precision_keeps_the_faster_step_and_says_why():
     import time
 
+    from cotpc.training.precision import native_bf16
+
     def make(slow_precision_is_bf16):
         def make_step(bf16, batch):
             slow = bf16 == slow_precision_is_bf16
             return lambda: time.sleep((0.02 if slow else 0.002) * (batch / 8))
         return make_step
 
-    c = choose_precision(make(True), batch_size=16, device="cpu")
-    assert not c.bf16 and c.fp32_ms < c.bf16_ms and c.batch_size == 8 and "small batch" in c.how
-    c = choose_precision(make(False), batch_size=16, device="cpu")
+    c = choose_precision(make(True), batch_size=16, device="cpu", native=True)
+    assert not c.bf16 and c.fp32_ms < c.bf16_ms and c.batch_size == 16 and "not faster" in c.how
+    c = choose_precision(make(False), batch_size=16, device="cpu", native=True)
     assert c.bf16 and c.bf16_ms < c.fp32_ms and c.batch_size == 16 and "faster" in c.how
-    c = choose_precision(make(False), batch_size=4, device="cpu")  # the batch is already small: one race
-    assert c.bf16 and c.batch_size == 4
     assert "fp32" in c.summary() and "bf16" in c.summary()
+
+    def never(bf16, batch):
+        raise AssertionError("no race without bf16 instructions")
+
+    c = choose_precision(never, batch_size=16, device="cpu", native=False)
+    assert not c.bf16 and c.fp32_ms is None and "no bf16 instructions" in c.how
+    assert native_bf16({"avx2", "amx_bf16"}) and native_bf16({"avx512_bf16"}) and not native_bf16({"avx2", "fma"})
 
 
 def test_precision_probe_is_stored_and_leaves_the_run_unchanged(tmp_path):
@@ -154,7 +161,13 @@ def test_precision_probe_is_stored_and_leaves_the_run_unchanged(tmp_path):
     probed = train(TrainConfig(data=data, out=tmp_path / "probed", **kw))
     info = json.loads((probed / "config.json").read_text())
     choice = info["precision"]
-    assert choice["fp32_ms"] > 0 and choice["bf16_ms"] > 0 and info["train"]["bf16"] == choice["bf16"]
+    assert info["train"]["bf16"] == choice["bf16"]
+    from cotpc.training.precision import native_bf16
+
+    if native_bf16():  # raced: both timings stored (else fp32 without a race, and it says why)
+        assert choice["fp32_ms"] > 0 and choice["bf16_ms"] > 0
+    else:
+        assert not choice["bf16"] and "no bf16 instructions" in choice["how"]
     told = train(TrainConfig(data=data, out=tmp_path / "told", bf16=choice["bf16"], **kw))
     from safetensors.torch import load_file
 

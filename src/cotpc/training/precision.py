@@ -75,9 +75,9 @@ class PrecisionChoice:
         return f"precision {'bf16 autocast' if self.bf16 else 'fp32'}: {self.how}{times}"
 
 
-def _race(make_step, batch: int, rounds: int, min_s: float = 0.1, stop_early: bool = True) -> tuple[float, float]:
+def _race(make_step, batch: int, rounds: int, min_s: float = 0.1) -> tuple[float, float]:
     """Fastest fp32 and bf16 step at ``batch``: alternating rounds, each of enough calls to last ~``min_s``
-    (a millisecond step timed once is timer noise), with ``stop_early`` stopping once bf16 is over 2x slower."""
+    (a millisecond step timed once is timer noise)."""
     fp32, bf16 = make_step(False, batch), make_step(True, batch)
     fp32()  # warm-up, and the length of one call
     t = time.perf_counter()
@@ -91,33 +91,48 @@ def _race(make_step, batch: int, rounds: int, min_s: float = 0.1, stop_early: bo
                 t = time.perf_counter()
                 fn()
                 best[name] = min(best[name], time.perf_counter() - t)
-        if stop_early and best["bf16"] > 2 * best["fp32"]:
-            break
     return best["fp32"], best["bf16"]
 
 
+def cpu_flags() -> set[str]:
+    """The CPU's feature flags (``/proc/cpuinfo``; empty where it cannot be read)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("flags"):
+                    return set(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return set()
+
+
+def native_bf16(flags: set[str] | None = None) -> bool:
+    """Whether the CPU has bf16 instructions (AMX-BF16 or AVX512-BF16). Without them torch emulates bf16 and a bf16
+    step is several times slower than fp32 (measured 6-10x on AVX2 EPYCs), so there is nothing to race. Where the
+    flags cannot be read, assume the instructions may be there and let the race decide."""
+    flags = cpu_flags() if flags is None else flags
+    return not flags or bool({"amx_bf16", "avx512_bf16"} & flags)
+
+
 def choose_precision(make_step: Callable[[bool, int], Callable[[], object]], batch_size: int, device: str,
-                     rounds: int = 3, small_batch: int = 8, margin: float = 0.9) -> PrecisionChoice:
+                     rounds: int = 3, margin: float = 0.9, native: bool | None = None) -> PrecisionChoice:
     """Time the training step in fp32 and bf16 and keep the faster (bf16 only if under ``margin`` x fp32).
 
     ``make_step(bf16, batch)`` returns a function doing one training step of the real model (on a copy, so the
-    run itself is untouched) in that precision at that batch size. The step is first raced at ``small_batch``:
-    where bf16 is emulated it is already several times slower there, and one full-batch bf16 step would take
-    many seconds (an AVX2-only CPU emulates bf16 matmuls), so the full-batch race is skipped.
-    On CUDA bf16 is used where the device supports it (tensor cores), without timing.
+    run itself is untouched) in that precision at that batch size. On a CPU without bf16 instructions
+    (``native``, default :func:`native_bf16`) fp32 is chosen without racing: an emulated bf16 step at the full
+    batch can take seconds. Elsewhere the race runs every round (fastest of ``rounds``): on a shared machine one
+    busy spell can make a single round look 5-10x slow (seen: a small-batch race under load called AMX bf16
+    "emulated"). On CUDA bf16 is used where the device supports it (tensor cores), without timing.
     """
     if device.startswith("cuda"):
         ok = torch.cuda.is_bf16_supported()
         return PrecisionChoice(ok, "CUDA device " + ("supports bf16" if ok else "without bf16 support"))
-    small = min(small_batch, batch_size)
-    fp32, bf16 = _race(make_step, small, rounds=2)
-    if bf16 > 2 * fp32:
-        return PrecisionChoice(False, "bf16 step over 2x slower at a small batch (bf16 not native on this CPU)",
-                               1000 * fp32, 1000 * bf16, small)
-    if small < batch_size:  # bf16 is native here (the small race says so): every round, since one busy spell
-        # of a shared machine can make a single round look 10x slow (seen: BeT bf16 2820 ms vs fp32 313 ms)
-        fp32, bf16 = _race(make_step, batch_size, rounds=rounds, stop_early=False)
+    if not (native_bf16() if native is None else native):
+        return PrecisionChoice(False, "no bf16 instructions on this CPU (neither amx_bf16 nor avx512_bf16 in its "
+                                      "flags): bf16 would be emulated")
+    fp32, bf16 = _race(make_step, batch_size, rounds=rounds)
     use = bf16 < margin * fp32
     how = (f"bf16 step {'faster' if use else 'not faster'} than fp32 by the {margin} margin "
-           f"(fastest of up to {rounds} alternating rounds)")
+           f"(fastest of {rounds} alternating rounds)")
     return PrecisionChoice(use, how, 1000 * fp32, 1000 * bf16, batch_size)
