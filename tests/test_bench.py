@@ -1,0 +1,25 @@
+"""`cotpc bench train` and `cotpc bench act` run for every family (benchmarks are not tests: this only checks that
+the commands work and report what they claim, at the smallest size)."""
+
+import json
+
+from cotpc.cli.main import main as cotpc_main
+
+
+def test_bench_act_reports_amortised_and_worst_steps(capsys):
+    cotpc_main(["bench", "act", "--policies", "bc", "cotpc", "dp", "--batch-sizes", "1", "--calls", "8",
+                "--threads", "1", "--json"])
+    rows = {r["policy"]: r for r in json.loads(capsys.readouterr().out)["rows"]}
+    assert set(rows) == {"bc", "cotpc", "dp"}
+    for r in rows.values():
+        assert 0 < r["ms"] <= r["ms_max"] and r["ms_mean"] <= r["ms_max"]
+    dp = rows["dp"]  # plans 8 actions at once: one slow step, seven nearly free ones
+    assert dp["ms"] < dp["ms_mean"] < dp["ms_max"]
+
+
+def test_bench_train_runs_every_family(capsys):
+    cotpc_main(["bench", "train", "--policies", "bc", "dp", "dd", "--settings", "maniskill", "--rounds", "1",
+                "--iters", "1", "--warmup", "1", "--bf16", "False", "--threads", "1", "--json"])
+    rows = {r["policy"]: r for r in json.loads(capsys.readouterr().out)["rows"]}
+    assert set(rows) == {"bc", "dp", "dd"}
+    assert all(r["ms_min"] > 0 and r["gflop_per_iter"] > 0 and not r["bf16"] for r in rows.values())
