@@ -7,12 +7,14 @@ STAMP := $(VENV)/.installed
 
 .PHONY: demo test install clean
 
+# The kitchen extra (gymnasium-robotics + mujoco, CPU wheels) is small, so the main environment and CI have it:
+# tests/test_kitchen.py runs instead of skipping.
 $(STAMP): pyproject.toml
 	python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	# The CPU wheel first: it satisfies `torch>=2.3` so pip never fetches a CUDA build.
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m pip install -q -e '.[dev,kitchen]'
 	touch $(STAMP)
 
 # ManiSkill3 lives in its own environment: mani-skill 3.0.1 needs numpy<2, the core uses what pip picks.

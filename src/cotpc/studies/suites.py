@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any, Callable, Optional
 
 # The modules that declare a suite, imported on first use (each registers its own).
-SUITE_MODULES = ("cotpc.studies.maze", "cotpc.studies.maniskill")
+SUITE_MODULES = ("cotpc.studies.maze", "cotpc.studies.maniskill", "cotpc.studies.kitchen")
 
 
 @dataclass(frozen=True)
