@@ -8,6 +8,7 @@ evaluated weights are the final ones of a fixed schedule, never selected on eval
 
 from __future__ import annotations
 
+import functools
 import json
 import platform
 import sys
@@ -22,7 +23,7 @@ from cotpc.demos.maniskill import ManiSkillDemos, make_demos
 from cotpc.envs.maniskill import is_maniskill_env
 from cotpc.envs.spec import env_spec, task_defaults
 from cotpc.evaluation.maniskill import evaluate_run
-from cotpc.studies.runs import cpu_count, fresh_eval, plot_learning_curves, stats, train_run
+from cotpc.studies.runs import Evaluation, cpu_count, fresh_eval, plot_learning_curves, stats, train_and_evaluate
 from cotpc.studies.suites import Suite, register_suite
 
 # The paper's Table 2 (ManiSkill2, state observations, success %). Its Stack Cube number is on unseen configs;
@@ -57,7 +58,6 @@ class ManiSkillStudySettings:
 def run(s: ManiSkillStudySettings) -> dict:
     from cotpc.demos.maniskill import write_splits  # mani_skill is imported only here: an optional extra
     from cotpc.envs.maniskill import HORIZONS, import_maniskill
-    from cotpc.evaluation.maniskill import evaluate, policy_loader
     from cotpc.subskills.labeling import label_file
 
     import_maniskill()
@@ -81,29 +81,27 @@ def run(s: ManiSkillStudySettings) -> dict:
         beta, cost = (defaults.beta if s.beta is None else s.beta), defaults.cost
         print(f"[2/4] {env_id}: subskill discovery, {cost} cost, beta={beta}", flush=True)
         subskills[env_id], _ = label_file(demos / "train.h5", beta=beta, min_size=1, cost=cost)
-        results[env_id] = {}
-        for name in s.policies:
-            summaries: dict = {split: [] for split in SPLITS}  # one evaluation summary per seed
-            for seed in range(s.seeds):
-                run_dir = task / "runs" / name / f"seed{seed}"
-                timings[f"{env_id}/{name}/seed{seed}"] = train_run(
-                    run_dir, demos / "train.h5", name, seed, s.iters, s.extra_train_args, step=f"[3/4] {env_id}:")
-                for split in SPLITS:
-                    episodes = s.seen_episodes if split == "seen" else None
-                    summary = _cached_eval(run_dir, split, s.horizon or HORIZONS[env_id], episodes)
-                    if summary is None:
-                        r = evaluate(policy_loader(run_dir), demos, split, episodes, horizon=s.horizon,
-                                     procs=s.procs, backend=s.backend, progress=sys.stderr.isatty())
-                        r.meta.update({"run": str(run_dir), "checkpoint": "last", "demos": str(demos)})
-                        r.to_json(run_dir / f"eval_{split}.json")
-                        summary = r.summary()
-                    summaries[split].append(summary)
-                print(f"[4/4] {env_id}: {name} seed {seed}: " + "  ".join(
-                    f"{split} {100 * summaries[split][-1]['success_once']:.1f}% once / "
-                    f"{100 * summaries[split][-1]['success_at_end']:.1f}% at end" for split in SPLITS), flush=True)
-            # "mean"/"std"/"best"/"runs" are success_once, the paper's metric (the maze results' shape);
-            # success_at_end is ManiSkill3's stricter one.
-            results[env_id][name] = {split: _aggregate(summaries[split]) for split in SPLITS}
+        horizon = s.horizon or HORIZONS[env_id]
+        evaluations = {split: Evaluation(
+            cached=functools.partial(_cached_eval, split=split, horizon=horizon,
+                                     episodes=s.seen_episodes if split == "seen" else None),
+            evaluate=functools.partial(_evaluate, split=split, demos=demos, s=s,
+                                       episodes=s.seen_episodes if split == "seen" else None),
+        ) for split in SPLITS}
+
+        def print_run(name: str, seed: int, run_dir: Path, summaries: dict) -> None:
+            print(f"[4/4] {env_id}: {name} seed {seed}: " + "  ".join(
+                f"{split} {100 * summaries[split]['success_once']:.1f}% once / "
+                f"{100 * summaries[split]['success_at_end']:.1f}% at end" for split in SPLITS), flush=True)
+
+        runs = [(name, seed) for name in s.policies for seed in range(s.seeds)]
+        grid = train_and_evaluate(task, demos / "train.h5", runs, s.iters, s.extra_train_args, evaluations,
+                                  step=f"[3/4] {env_id}:", after_run=print_run)
+        timings.update({f"{env_id}/{run}": t for run, t in grid.train_seconds.items()})
+        # "mean"/"std"/"best"/"runs" are success_once, the paper's metric (the maze results' shape);
+        # success_at_end is ManiSkill3's stricter one.
+        results[env_id] = {name: {split: _aggregate(grid.summaries[name][split]) for split in SPLITS}
+                           for name in s.policies}
     import torch
 
     results["meta"] = {
@@ -145,6 +143,18 @@ def _version(module: str) -> str | None:
         return version(module.replace("_", "-"))
     except PackageNotFoundError:
         return None
+
+
+def _evaluate(run_dir: Path, load, split: str, demos: Path, s: ManiSkillStudySettings, episodes: int | None) -> dict:
+    """A new evaluation of ``run_dir``'s final weights on ``split``, written to ``eval_<split>.json``. ``load`` is
+    unused: the evaluator loads the policy itself (one copy per process)."""
+    from cotpc.evaluation.maniskill import evaluate, policy_loader  # mani_skill: an optional extra
+
+    r = evaluate(policy_loader(run_dir), demos, split, episodes, horizon=s.horizon, procs=s.procs, backend=s.backend,
+                 progress=sys.stderr.isatty())
+    r.meta.update({"run": str(run_dir), "checkpoint": "last", "demos": str(demos)})
+    r.to_json(run_dir / f"eval_{split}.json")
+    return r.summary()
 
 
 def _cached_eval(run_dir: Path, split: str, horizon: int, episodes: int | None) -> dict | None:

@@ -7,6 +7,7 @@ schedule; nothing is ever selected on evaluation success.
 
 from __future__ import annotations
 
+import functools
 import json
 import platform
 import sys
@@ -22,7 +23,8 @@ from cotpc.envs.moving_maze import ENV_ID, HORIZON, PAPER_MIN_ACTION, RULES, SPE
 from cotpc.evaluation.maze import eval_name, evaluate, evaluate_run, load_split_configs
 from cotpc.studies.suites import Suite, register_suite
 from cotpc.studies.runs import (
-    PROTOCOL_CHECKPOINTS, cpu_count, fresh_eval, plot_learning_curves, policy_loader, stats, train_parallel, train_run,
+    PROTOCOL_CHECKPOINTS, Evaluation, cpu_count, fresh_eval, plot_learning_curves, policy_loader, stats,
+    train_and_evaluate,
 )
 
 # The paper's Table 1 (Moving Maze, unseen configs, success %). Its ablations (Table 4) are on ManiSkill2 only.
@@ -88,48 +90,43 @@ def run(s: ReproduceSettings) -> dict:
     # 3. training, 4. evaluation (an evaluation already on disk for the same weights and configs is reused)
     split_seeds = {split: load_split_configs(demos, split)[1] for split in {split for split, *_ in EVAL_KEYS.values()}}
     results: dict = {}
-    timings: dict = {}
     names = list(s.policies) + [a for a in s.ablations if a not in s.policies]
     # ablations: one seed each
     runs = [(name, seed) for name in names for seed in (range(s.seeds) if name in s.policies else range(1))]
-    if s.jobs > 1:
-        train_parallel(out, demos / "train.h5", runs, s.iters, s.extra_train_args, s.jobs)
     eval_device = resolve_device(s.extra_train_args.get("device", "auto"))
+    evaluations = {key: Evaluation(cached=functools.partial(_cached_eval, key=key, seeds=split_seeds[split]),
+                                   evaluate=functools.partial(_evaluate_run, key=key, demos=demos,
+                                                              videos=out / "videos"))
+                   for key, (split, *_) in EVAL_KEYS.items()}
     curves: dict = {}
     protocol: dict = {name: {} for name in names}  # the paper's protocol, with --keep-checkpoints
+
+    def after_run(name: str, seed: int, run_dir: Path, summaries: dict) -> None:
+        if s.extra_train_args.get("keep_checkpoints"):
+            curves[f"{name}/seed{seed}"] = checkpoint_curve(run_dir, demos, split_seeds["val"], eval_device)
+            protocol[name][f"seed{seed}"] = last_checkpoints_success(run_dir, demos, split_seeds["unseen"],
+                                                                     eval_device)
+        rate = {key: 100 * summaries[key]["success_rate"] for key in summaries}
+        print(
+            f"[4/5] {name} seed {seed}: seen {rate['seen']:.1f}%  val {rate['val']:.1f}%  "
+            f"unseen {rate['unseen']:.1f}%  (forgiving rules: seen "
+            f"{rate['seen_forgiving']:.1f}%  val {rate['val_forgiving']:.1f}%  "
+            f"unseen {rate['unseen_forgiving']:.1f}%)",
+            flush=True,
+        )
+
+    grid = train_and_evaluate(out, demos / "train.h5", runs, s.iters, s.extra_train_args, evaluations,
+                              jobs=s.jobs, device=eval_device, step="[3/5]", after_run=after_run)
+    timings = grid.train_seconds
     for name in names:
-        seeds = [seed for n, seed in runs if n == name]
-        per_split: dict = {key: [] for key in EVAL_KEYS}
-        transitions: dict = {key: [] for key in EVAL_KEYS}
-        raised: dict = {key: [] for key in EVAL_KEYS}  # share of action components the min_action rule raised
-        for seed in seeds:
-            run_dir = out / "runs" / name / f"seed{seed}"
-            timings[f"{name}/seed{seed}"] = train_run(run_dir, demos / "train.h5", name, seed, s.iters,
-                                                       s.extra_train_args, step="[3/5]")
-            if s.extra_train_args.get("keep_checkpoints"):
-                curves[f"{name}/seed{seed}"] = checkpoint_curve(run_dir, demos, split_seeds["val"], eval_device)
-                protocol[name][f"seed{seed}"] = last_checkpoints_success(run_dir, demos, split_seeds["unseen"],
-                                                                         eval_device)
-            load = policy_loader(run_dir, eval_device)
-            for key, (split, *_) in EVAL_KEYS.items():
-                video = out / "videos" / name if (key == "unseen" and seed == 0) else None
-                summary = _evaluate_cached(run_dir, key, demos, split_seeds[split], load, video)
-                per_split[key].append(100 * summary["success_rate"])
-                transitions[key].append(summary["mean_region_transitions"])
-                if "raised_share" in summary:
-                    raised[key].append(summary["raised_share"])
-            print(
-                f"[4/5] {name} seed {seed}: seen {per_split['seen'][-1]:.1f}%  val {per_split['val'][-1]:.1f}%  "
-                f"unseen {per_split['unseen'][-1]:.1f}%  (forgiving rules: seen "
-                f"{per_split['seen_forgiving'][-1]:.1f}%  val {per_split['val_forgiving'][-1]:.1f}%  "
-                f"unseen {per_split['unseen_forgiving'][-1]:.1f}%)",
-                flush=True,
-            )
-        results[name] = {
-            key: {**stats(per_split[key]), "region_transitions": float(np.mean(transitions[key])),
-                  **({"raised_share": float(np.mean(raised[key]))} if raised[key] else {})}
-            for key in EVAL_KEYS
-        }
+        per_key = grid.summaries[name]
+        results[name] = {}
+        for key in EVAL_KEYS:
+            raised = [x["raised_share"] for x in per_key[key] if "raised_share" in x]  # action components raised
+            results[name][key] = {**stats([100 * x["success_rate"] for x in per_key[key]]),
+                                  "region_transitions": float(np.mean([x["mean_region_transitions"]
+                                                                       for x in per_key[key]])),
+                                  **({"raised_share": float(np.mean(raised))} if raised else {})}
         if protocol[name]:
             results[name]["paper_protocol"] = {
                 "best": max(max(r["unseen"]) for r in protocol[name].values()),
@@ -195,13 +192,21 @@ def _evaluate_cached(run_dir: Path, key: str, demos: Path, seeds: list[int], loa
     """The summary of ``run_dir/eval_<key>.json`` (split and rules from ``EVAL_KEYS[key]``): reused when it is fresh
     for these weights, configs and rules, else evaluated (with ``load()``'s policy) and written."""
     summary = _cached_eval(run_dir, key, seeds)
-    if summary is None:
-        split, deadly, min_action = EVAL_KEYS[key]
-        r = evaluate(load(), demos, split, video_dir=video_dir, num_videos=2, deadly_gaps=deadly,
-                     min_action=min_action)
-        r.to_json(run_dir / f"eval_{key}.json")
-        summary = r.summary()
-    return summary
+    return summary if summary is not None else _evaluate_key(run_dir, key, demos, load, video_dir)
+
+
+def _evaluate_key(run_dir: Path, key: str, demos: Path, load, video_dir: Path | None = None) -> dict:
+    """Evaluate ``load()``'s policy on the split and rules of ``EVAL_KEYS[key]``; write ``run_dir/eval_<key>.json``."""
+    split, deadly, min_action = EVAL_KEYS[key]
+    r = evaluate(load(), demos, split, video_dir=video_dir, num_videos=2, deadly_gaps=deadly, min_action=min_action)
+    r.to_json(run_dir / f"eval_{key}.json")
+    return r.summary()
+
+
+def _evaluate_run(run_dir: Path, load, key: str, demos: Path, videos: Path) -> dict:
+    """:func:`_evaluate_key` of a study's run, with videos of seed 0's unseen rollouts in ``videos/<policy>/``."""
+    video_dir = videos / run_dir.parent.name if (key == "unseen" and run_dir.name == "seed0") else None
+    return _evaluate_key(run_dir, key, demos, load, video_dir)
 
 
 def _cached_eval(run_dir: Path, key: str, seeds: list[int]) -> dict | None:

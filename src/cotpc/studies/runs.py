@@ -1,7 +1,8 @@
 """The machinery every study shares: train a grid of policies x seeds into ``OUT/runs/<policy>/seed<k>/``,
 reusing finished runs and resuming interrupted ones (a run on disk trained with other settings is an error),
 several at once (``--jobs``); cached evaluations that are reused while they are newer than the weights; the
-statistics over seeds, and the training curves read back from TensorBoard."""
+statistics over seeds, and the training curves read back from TensorBoard. :func:`train_and_evaluate` is the
+generic study runner: a study declares its runs and its :class:`Evaluation` s and writes its own report."""
 
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ import dataclasses
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Callable, Optional
 
 import numpy as np
 
@@ -194,3 +197,52 @@ def _scalar(logdir: Path, tag: str) -> tuple[list[int], list[float]]:
         return [], []
     events = acc.Scalars(tag)
     return [e.step for e in events], [e.value for e in events]
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One evaluation that a study makes of each of its runs, saved in the run's directory and reused."""
+
+    cached: Callable[[Path], Optional[dict]]
+    """``run_dir`` -> the summary saved there if it is fresh (written after the run's weights, for the same configs
+    and settings), else None."""
+    evaluate: Callable[[Path, Callable[[], Any]], dict]
+    """(``run_dir``, ``load_policy``) -> the summary of a new evaluation, which it saves. ``load_policy()`` loads
+    the run's policy (once, and only when some evaluation is not cached)."""
+
+
+@dataclass
+class GridResults:
+    """What :func:`train_and_evaluate` returns; each study turns it into its results.json."""
+
+    summaries: dict[str, dict[str, list[dict]]]
+    """policy -> evaluation key -> one summary per seed of that policy, in the order of the runs."""
+    train_seconds: dict[str, Optional[float]]
+    """``<policy>/seed<k>`` -> the training seconds measured when the run was trained (None: not measured)."""
+
+
+def train_and_evaluate(out: Path, data: Path, runs: list[tuple[str, int]], iters: int, extra_train_args: dict,
+                       evaluations: dict[str, Evaluation], jobs: int = 1, device: str = "cpu", step: str = "",
+                       after_run: Optional[Callable[[str, int, Path, dict[str, dict]], None]] = None) -> GridResults:
+    """The grid of a study: train each (policy, seed) of ``runs`` into ``out/runs/<policy>/seed<k>/`` on ``data``
+    unless it is finished there (in ``jobs`` processes at once when jobs > 1; else one by one, resuming), then make
+    every evaluation of ``evaluations`` that is not cached. ``after_run(policy, seed, run_dir, summaries by key)``
+    is called after each run's evaluations (a study prints its line, or evaluates its checkpoints, there).
+    ``step`` prefixes the training lines printed by a one-by-one run."""
+    if jobs > 1:
+        train_parallel(out, data, runs, iters, extra_train_args, jobs)
+    summaries: dict[str, dict[str, list[dict]]] = {}
+    seconds: dict[str, Optional[float]] = {}
+    for name, seed in runs:
+        run_dir = out / "runs" / name / f"seed{seed}"
+        seconds[f"{name}/seed{seed}"] = train_run(run_dir, data, name, seed, iters, extra_train_args, step=step)
+        load = policy_loader(run_dir, device)
+        per_key = summaries.setdefault(name, {key: [] for key in evaluations})
+        this_run = {}
+        for key, ev in evaluations.items():
+            summary = ev.cached(run_dir)
+            this_run[key] = summary if summary is not None else ev.evaluate(run_dir, load)
+            per_key[key].append(this_run[key])
+        if after_run is not None:
+            after_run(name, seed, run_dir, this_run)
+    return GridResults(summaries, seconds)
