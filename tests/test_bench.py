@@ -3,7 +3,19 @@ the commands work and report what they claim, at the smallest size)."""
 
 import json
 
+import pytest
+import torch
+
 from cotpc.cli.main import main as cotpc_main
+
+
+@pytest.fixture(autouse=True)
+def _restore_threads():
+    """`--threads 1` sets torch's global thread count; later tests in this process must not inherit it (a test
+    of another file learns differently at 1 thread)."""
+    threads = torch.get_num_threads()
+    yield
+    torch.set_num_threads(threads)
 
 
 def test_bench_act_reports_amortised_and_worst_steps(capsys):
@@ -23,3 +35,4 @@ def test_bench_train_runs_every_family(capsys):
     rows = {r["policy"]: r for r in json.loads(capsys.readouterr().out)["rows"]}
     assert set(rows) == {"bc", "dp", "dd"}
     assert all(r["ms_min"] > 0 and r["gflop_per_iter"] > 0 and not r["bf16"] for r in rows.values())
+

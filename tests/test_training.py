@@ -164,3 +164,15 @@ def test_validation_metrics_of_one_pass_equal_the_separate_computations():
         want_all = model.loss(batch)[1]
         for k in want_all:
             torch.testing.assert_close(all_pos[k], want_all[k], msg=f"{name} {k}")
+
+
+def test_training_leaves_the_callers_thread_count(tmp_path):
+    from cotpc.data import save_trajectories
+    from cotpc.data.dataset import synthetic_trajectories
+    from cotpc.training import TrainConfig, train
+
+    data = tmp_path / "d.h5"
+    save_trajectories(data, synthetic_trajectories(n_episodes=4, obs_dim=4, action_dim=2, length=10, seed=0))
+    torch.set_num_threads(2)
+    train(TrainConfig(data=data, policy="bc", out=tmp_path / "run", iters=2, threads=1, progress=False))
+    assert torch.get_num_threads() == 2

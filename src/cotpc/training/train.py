@@ -250,7 +250,16 @@ def _append_timing(run_dir: Path, segment: dict) -> None:
 
 
 def train(config: TrainConfig) -> Path:
-    """Train and return the run directory."""
+    """Train and return the run directory. torch's thread count is the caller's again afterwards (``--threads``
+    sets it for the run only: a library call must not change what later code in the process runs with)."""
+    threads = torch.get_num_threads()
+    try:
+        return _train(config)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _train(config: TrainConfig) -> Path:
     # --- processes and devices ---
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
