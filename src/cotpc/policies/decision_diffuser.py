@@ -52,7 +52,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from cotpc.policies.base import BaseConfig, Normaliser, mlp, register_family
-from cotpc.policies.diffusion import UNet1D, _params_as_buffers
+from cotpc.policies.diffusion import UNet1D, make_schedulers, params_as_buffers, update_ema
 
 
 @dataclass(frozen=True)
@@ -182,20 +182,13 @@ class DecisionDiffuser(nn.Module):
 
     def __init__(self, cfg: DDConfig, obs_dim: int, action_dim: int, max_timestep: int = 0):
         super().__init__()
-        from diffusers.schedulers.scheduling_ddim import DDIMScheduler
-        from diffusers.schedulers.scheduling_ddpm import DDPMScheduler
-
         self.cfg, self.obs_dim, self.action_dim = cfg, obs_dim, action_dim
         self.norm = Normaliser(obs_dim, action_dim)
         self.net = DDNet(cfg, obs_dim, action_dim)
-        self.ema = _params_as_buffers(copy.deepcopy(self.net))  # the averaged weights
+        self.ema = params_as_buffers(copy.deepcopy(self.net))  # the averaged weights
         self.register_buffer("ema_updates", torch.zeros((), dtype=torch.int64))
         # DD's cosine_beta_schedule is diffusers' squaredcos_cap_v2 (Nichol & Dhariwal, s = 0.008, betas <= 0.999)
-        schedule = dict(num_train_timesteps=cfg.train_steps, beta_schedule="squaredcos_cap_v2",
-                        clip_sample=cfg.clip_sample > 0, clip_sample_range=cfg.clip_sample or 1.0,
-                        prediction_type="epsilon")
-        self.train_scheduler = DDPMScheduler(**schedule)
-        self.sampler = DDIMScheduler(**schedule)  # eta = 0: deterministic given the initial noise
+        self.train_scheduler, self.sampler = make_schedulers(cfg.train_steps, cfg.clip_sample)
 
     @property
     def n_params(self) -> int:
@@ -242,12 +235,7 @@ class DecisionDiffuser(nn.Module):
     @torch.no_grad()
     def after_optimizer_step(self) -> None:
         """Move the EMA weights towards the trained ones (the training loop calls this after each step)."""
-        k = int(self.ema_updates)  # the first update copies (decay 0), as DP's EMAModel
-        decay = 0.0 if k == 0 else min(self.cfg.ema_max_decay, 1 - (1 + k) ** -self.cfg.ema_power)
-        ema = dict(self.ema.named_buffers())
-        names = [n for n, _ in self.net.named_parameters()]
-        torch._foreach_lerp_([ema[n] for n in names], [p.detach() for p in self.net.parameters()], 1 - decay)
-        self.ema_updates += 1
+        update_ema(self.ema, self.net, self.ema_updates, self.cfg.ema_power, self.cfg.ema_max_decay)
 
     # --- inference ---
     @torch.no_grad()

@@ -200,7 +200,7 @@ class UNet1D(nn.Module):
         return self.final(h).transpose(1, 2)
 
 
-def _params_as_buffers(module: nn.Module) -> nn.Module:
+def params_as_buffers(module: nn.Module) -> nn.Module:
     """Turn every parameter of ``module`` into a buffer of the same name: a frozen copy that the optimiser, the
     parameter count and DDP's gradient sync do not see, and that ``state_dict`` saves."""
     for m in module.modules():
@@ -210,25 +210,42 @@ def _params_as_buffers(module: nn.Module) -> nn.Module:
     return module
 
 
+
+def make_schedulers(train_steps: int, clip_sample: float):
+    """DDPM for training and DDIM (eta 0: deterministic given the initial noise) for sampling, the squared-cosine
+    schedule with epsilon prediction, each step's clean estimate clipped to +-``clip_sample`` (0: no clipping).
+    Shared by the diffusion families (diffusers is imported here, when a model is built: it takes seconds)."""
+    from diffusers.schedulers.scheduling_ddim import DDIMScheduler
+    from diffusers.schedulers.scheduling_ddpm import DDPMScheduler
+
+    schedule = dict(num_train_timesteps=train_steps, beta_schedule="squaredcos_cap_v2",
+                    clip_sample=clip_sample > 0, clip_sample_range=clip_sample or 1.0, prediction_type="epsilon")
+    return DDPMScheduler(**schedule), DDIMScheduler(**schedule)
+
+
+@torch.no_grad()
+def update_ema(ema: nn.Module, net: nn.Module, updates: torch.Tensor, power: float, max_decay: float) -> None:
+    """Move ``ema`` (``net``'s parameters held as buffers) towards ``net``, DP's EMAModel rule: decay 0 on the
+    first update (a copy), then ``min(max_decay, 1 - (1 + k)^-power)``; counts the update in ``updates``."""
+    k = int(updates)
+    decay = 0.0 if k == 0 else min(max_decay, 1 - (1 + k) ** -power)
+    buffers = dict(ema.named_buffers())
+    names = [n for n, _ in net.named_parameters()]
+    torch._foreach_lerp_([buffers[n] for n in names], [p.detach() for p in net.parameters()], 1 - decay)
+    updates += 1
+
 class DiffusionPolicy(nn.Module):
     """Diffusion Policy: ``loss`` is the DDPM noise-prediction MSE on a window's action chunk; ``sample`` runs
     DDIM with the EMA weights; ``predict_chunk`` gives the actions to execute (normalised)."""
 
     def __init__(self, cfg: DPConfig, obs_dim: int, action_dim: int, max_timestep: int = 0):
         super().__init__()
-        from diffusers.schedulers.scheduling_ddim import DDIMScheduler
-        from diffusers.schedulers.scheduling_ddpm import DDPMScheduler
-
         self.cfg, self.obs_dim, self.action_dim = cfg, obs_dim, action_dim
         self.norm = Normaliser(obs_dim, action_dim)
         self.net = UNet1D(action_dim, cfg.obs_horizon * obs_dim, cfg)
-        self.ema = _params_as_buffers(copy.deepcopy(self.net))  # the averaged weights
+        self.ema = params_as_buffers(copy.deepcopy(self.net))  # the averaged weights
         self.register_buffer("ema_updates", torch.zeros((), dtype=torch.int64))
-        schedule = dict(num_train_timesteps=cfg.train_steps, beta_schedule="squaredcos_cap_v2",
-                        clip_sample=cfg.clip_sample > 0, clip_sample_range=cfg.clip_sample or 1.0,
-                        prediction_type="epsilon")
-        self.train_scheduler = DDPMScheduler(**schedule)
-        self.sampler = DDIMScheduler(**schedule)  # eta = 0: deterministic given the initial noise
+        self.train_scheduler, self.sampler = make_schedulers(cfg.train_steps, cfg.clip_sample)
 
     @property
     def n_params(self) -> int:
@@ -259,15 +276,9 @@ class DiffusionPolicy(nn.Module):
         loss = self._denoise_loss(self.net, batch)  # noise and steps from the global RNG (restored on --resume)
         return loss, {"denoise": loss, "bc": loss, "loss": loss}
 
-    @torch.no_grad()
     def after_optimizer_step(self) -> None:
         """Move the EMA weights towards the trained ones (the training loop calls this after each step)."""
-        k = int(self.ema_updates)  # the first update copies (decay 0), as DP's EMAModel
-        decay = 0.0 if k == 0 else min(self.cfg.ema_max_decay, 1 - (1 + k) ** -self.cfg.ema_power)
-        ema = dict(self.ema.named_buffers())
-        names = [n for n, _ in self.net.named_parameters()]
-        torch._foreach_lerp_([ema[n] for n in names], [p.detach() for p in self.net.parameters()], 1 - decay)
-        self.ema_updates += 1
+        update_ema(self.ema, self.net, self.ema_updates, self.cfg.ema_power, self.cfg.ema_max_decay)
 
     # --- inference ---
     @torch.no_grad()
