@@ -7,6 +7,7 @@ seed-range tests run everywhere. Everything runs on the CPU simulator with no re
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -86,7 +87,7 @@ def stack_demos(tmp_path_factory):
     needs_maniskill()
     out = tmp_path_factory.mktemp("stackcube")
     cotpc_main(["demos", "maniskill", "--env", "StackCube-v1", "--out", str(out), "--num", "2", "--test", "1",
-                "--no-progress"])
+                "--val", "1", "--no-progress"])
     return out
 
 
@@ -183,13 +184,15 @@ def test_reproduce_maniskill_end_to_end_and_resumes(stack_demos, tmp_path):
     import shutil
 
     from cotpc.studies.maniskill import ManiSkillStudySettings, run
+    from cotpc.training.train import TrainConfig
 
     demos = tmp_path / "StackCube-v1" / "demos"
     shutil.copytree(stack_demos, demos)  # the fixture's 2 + 1 demos: generation finds them complete
     settings = ManiSkillStudySettings(
-        out=tmp_path, envs=("StackCube-v1",), policies=("cotpc",), seeds=1, iters=2, num=2, test=1,
-        seen_episodes=1, horizon=12, procs=1, backend="cpu",
-        extra_train_args={"batch_size": 8, "d_model": 32, "n_layers": 1, "n_heads": 2, "n_centres": 8},
+        out=tmp_path, envs=("StackCube-v1",), policies=("cotpc",), seeds=1, num=2, test=1, val=1,
+        seen_episodes=1, curve_episodes=1, paper_protocol=True, horizon=12, procs=1, backend="cpu",
+        train=TrainConfig(data=Path("replaced by each task's demos"), iters=2, batch_size=8, d_model=32, n_layers=1,
+                          n_heads=2, n_centres=8, keep_checkpoints=True),
     )
     results = run(settings)
     r = results["StackCube-v1"]["cotpc"]
@@ -204,6 +207,16 @@ def test_reproduce_maniskill_end_to_end_and_resumes(stack_demos, tmp_path):
     assert json.loads((tmp_path / "results.json").read_text())["meta"]["paper"]["StackCube-v1"]["results"]["cotpc"] == 86.0
     report = (tmp_path / "report.md").read_text()
     assert "## StackCube-v1" in report and "| cotpc |" in report and "is_cubeA_grasped" in report and (tmp_path / "learning_curves_StackCube-v1.png").exists()
+    # --keep-checkpoints: every kept checkpoint scored on the validation seeds (the schedule curve), and the
+    # paper's protocol on the test seeds, labelled as such.
+    curve = r["val_curve"]["seed0"]
+    assert curve["iteration"] == [1, 2] and curve["samples"] == [8, 16] and len(curve["success_once"]) == 2
+    ckpt_eval = json.loads((tmp_path / "StackCube-v1/runs/cotpc/seed0/checkpoints/step_0000002/eval_val.json").read_text())
+    assert ckpt_eval["summary"]["episodes"] == 1 and ckpt_eval["summary"]["split"] == "val"
+    assert 1_000_000 <= ckpt_eval["episodes"][0]["seed"] < 2_000_000  # a validation seed, never a test one
+    assert r["paper_protocol"]["runs"]["seed0"]["iteration"] == [1, 2] and "test seeds" in r["paper_protocol"]["rule"]
+    assert "| cotpc/seed0 | " in report and "The paper's protocol" in report
+    assert (tmp_path / "val_success_StackCube-v1.png").exists()
     # A second invocation reuses the demos, the trained weights and the evaluations.
     weights = tmp_path / "StackCube-v1/runs/cotpc/seed0/model.safetensors"
     evals = tmp_path / "StackCube-v1/runs/cotpc/seed0/eval_unseen.json"
@@ -217,7 +230,8 @@ def test_maniskill_report_for_a_task_without_stage_flags(tmp_path):
 
     stats = {"mean": 0.0, "std": 0.0, "best": 0.0, "runs": [0.0]}
     split = {**stats, "success_at_end": stats, "stages_once": {}, "max_normalized_reward": 0.25}
-    meta = {"settings": {"iters": 2, "seeds": 1, "control_mode": "pd_joint_delta_pos", "extra_train_args": {}},
+    meta = {"settings": {"seeds": 1, "control_mode": "pd_joint_delta_pos",
+                         "train": {"iters": 2, "batch_size": None, "n_centres": None}},
             "checkpoint_selection": "final", "wall_seconds": 1.0, "demos": {"PegInsertionSide-v1": 3},
             "horizons": {"PegInsertionSide-v1": 200}, "subskills": {}, "train_seconds": {}, "paper": PAPER,
             "hardware": {"cpus": 2, "machine": "x86_64"},

@@ -30,7 +30,7 @@ def test_reproduce_runs_end_to_end_and_resumes(tmp_path, capsys):
         assert results["cotpc"][key]["runs"] == [100 * summary["success_rate"]]
         assert ("raised_share" in results["cotpc"][key]) == (min_action > 0)
     assert results["meta"]["ablations"] == ["vanilla"]
-    assert results["meta"]["settings"]["iters"] == 6
+    assert results["meta"]["settings"]["train"]["iters"] == 6
     # --quick trains the BeT-style heads with 128 k-means centres (chosen on validation configs)
     assert json.loads((out / "runs" / "cotpc" / "seed0" / "config.json").read_text())["policy"]["n_centres"] == 128
     report = (out / "report.md").read_text()
@@ -113,15 +113,19 @@ def test_a_run_of_another_design_under_the_same_preset_name_is_not_reused(tmp_pa
 
     from cotpc.policies import config_to_dict, get_preset
     from cotpc.studies.runs import finished
+    from cotpc.training.train import TrainConfig
 
+    wanted = TrainConfig(data=tmp_path / "train.h5", policy="cotpc", seed=0, iters=5, context=4)
     run = tmp_path / "cotpc" / "seed0"
     run.mkdir(parents=True)
     info = {"train": {"policy": "cotpc", "seed": 0, "iters": 5, "context": 4},
             "policy": config_to_dict(get_preset("cotpc", context=4)), "step": 5}
     (run / "config.json").write_text(json.dumps(info))
-    assert finished(run, 5, {"policy": "cotpc", "seed": 0})
+    assert finished(run, wanted)
+    with pytest.raises(ValueError, match="context"):  # any setting that changes what a run learns
+        finished(run, dataclasses.replace(wanted, context=8))
     other = dataclasses.replace(get_preset("cotpc"), cot_attention="causal", random_cot_mask=False)
     info["policy"] = config_to_dict(other)
     (run / "config.json").write_text(json.dumps(info))
     with pytest.raises(ValueError, match="policy.cot_attention"):
-        finished(run, 5, {"policy": "cotpc", "seed": 0})
+        finished(run, wanted)

@@ -10,6 +10,6 @@ __version__ = "0.1.0"
 def load_policy(run_dir, device: str = "cpu"):
     """Load a trained run directory (``config.json`` + ``model.safetensors``) as a policy with ``reset()`` and
     ``select_action(obs)`` over a batch of environments."""
-    from cotpc.policies import load_policy as _load_policy
+    from cotpc.policies import load_policy as _load_policy  # lazily: `import cotpc` alone does not load torch
 
     return _load_policy(run_dir, device=device)

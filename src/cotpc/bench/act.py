@@ -19,6 +19,8 @@ import numpy as np
 import torch
 import tyro
 
+from cotpc.policies import Policy, get_preset, make_model
+
 
 @dataclass
 class Config:
@@ -38,8 +40,6 @@ class Config:
 
 
 def bench(name: str, batch: int, calls: int) -> dict:
-    from cotpc.policies import Policy, get_preset, make_model
-
     cfg = get_preset(name, context=10, n_centres=128)
     torch.manual_seed(0)
     pol = Policy(make_model(cfg, 43, 8, 200))

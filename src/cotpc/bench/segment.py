@@ -22,9 +22,9 @@ import tyro
 
 from cotpc.subskills.discovery import (
     ZERO_MEAN_RTOL,
-    _check_actions,
-    _segment_cost,
-    _unit,
+    check_actions,
+    segment_cost,
+    unit_actions,
     discover_batch,
     objective,
 )
@@ -81,10 +81,10 @@ def synthetic_set(num: int, length: int, dim: int, seed: int = 0) -> tuple[list[
 def reference_dp(actions: np.ndarray, beta: float, min_size: int = 1, cost: str = "mean-cosine") -> np.ndarray:
     """Plain O(N^2 p) DP whose segment costs are summed directly (backwards from each end j), not from prefix
     sums; slow, independent numerics, same zero convention. Used to check the fast path."""
-    a = _check_actions(actions)
+    a = check_actions(actions)
     cost_name = cost
     n = len(a)
-    u, norms, nonzero = _unit(a)
+    u, norms, nonzero = unit_actions(a)
     F = np.full(n + 1, math.inf)
     F[0] = 0.0
     arg = np.zeros(n + 1, dtype=np.int64)
@@ -122,7 +122,7 @@ def ruptures_pelt(actions: np.ndarray, beta: float, min_size: int = 1, impl: str
     are written): O(n p) per call. ``impl="prefix"`` uses prefix sums, O(p) per call: the fastest custom cost we
     could write, which favours ruptures. Both follow our zero convention, so the objectives are comparable.
     """
-    try:
+    try:  # ruptures is optional (the [dev] extra): only this comparison needs it
         import ruptures as rpt
         from ruptures.base import BaseCost
         from ruptures.exceptions import NotEnoughPoints
@@ -139,7 +139,7 @@ def ruptures_pelt(actions: np.ndarray, beta: float, min_size: int = 1, impl: str
 
         def fit(self, signal):
             a = self.signal = np.asarray(signal, dtype=np.float64)  # ruptures reads .signal
-            self.u, self.norms, self.nonzero = _unit(a)  # "zero action" is decided trajectory-wide
+            self.u, self.norms, self.nonzero = unit_actions(a)  # "zero action" is decided trajectory-wide
             z = np.zeros((1, a.shape[1]))
             self.ps = np.concatenate([z, np.cumsum(a, axis=0)])
             self.pu = np.concatenate([z, np.cumsum(self.u, axis=0)])
@@ -153,7 +153,7 @@ def ruptures_pelt(actions: np.ndarray, beta: float, min_size: int = 1, impl: str
                 raise NotEnoughPoints
             if self.impl == "direct":
                 sl = slice(start, end)
-                return _segment_cost(self.u[sl], self.signal[sl], self.norms[sl], self.nonzero[sl])
+                return segment_cost(self.u[sl], self.signal[sl], self.norms[sl], self.nonzero[sl])
             s = self.ps[end] - self.ps[start]
             s_norm = math.sqrt(float(s @ s))
             if s_norm <= ZERO_MEAN_RTOL * (self.pn[end] - self.pn[start]):
@@ -236,7 +236,7 @@ def run(cfg: Config) -> dict:
                 "ours_segments_mean": float(np.mean([len(ours[idx[i]]) for i in sel])) if sel else None,
                 "ruptures_segments_mean": float(np.mean([len(rpt_ends[i]) for i in sel])) if sel else None,
             }
-        import ruptures
+        import ruptures  # optional (the [dev] extra): only when comparing against it
 
         result["ruptures"] = {
             "version": ruptures.__version__,

@@ -30,6 +30,13 @@ from typing import Callable, Literal, Optional
 import numpy as np
 import torch
 import tyro
+from torch.utils.flop_counter import FlopCounterMode
+
+from cotpc.data.dataset import Stats, WindowDataset, synthetic_trajectories
+from cotpc.policies import PRESETS, get_preset, make_model
+from cotpc.policies.kmeans import kmeans
+from cotpc.training.precision import PrecisionChoice, autocast_for, time_alternating
+from cotpc.training.train import make_optimizer, probe_precision, train_step
 
 SETTINGS = {
     "maniskill": {"context": 10, "obs_dim": 43, "action_dim": 8, "n_centres": 128, "length": 120},
@@ -97,12 +104,6 @@ def cpu_info() -> dict:
 
 def policy_step(name: str, setting: str, bf16: Optional[bool]) -> tuple[Callable[[], object], dict]:
     """The training step of policy ``name`` on synthetic data of ``setting``'s shape, and facts about it."""
-    from cotpc.data.dataset import Stats, WindowDataset, synthetic_trajectories
-    from cotpc.policies import get_preset, make_model
-    from cotpc.policies.kmeans import kmeans
-    from cotpc.training.precision import PrecisionChoice, autocast_for
-    from cotpc.training.train import make_optimizer, probe_precision, train_step
-
     s = SETTINGS[setting]
     pcfg = get_preset(name, context=s["context"], n_centres=s["n_centres"])
     trajs = synthetic_trajectories(64, s["obs_dim"], s["action_dim"], s["length"], n_segments=4, seed=0)
@@ -178,8 +179,6 @@ def official_step(module, setting: str, batch_size: int = 256) -> tuple[Callable
 
 
 def count_flops(step: Callable[[], object]) -> float:
-    from torch.utils.flop_counter import FlopCounterMode
-
     with FlopCounterMode(display=False) as fc:
         step()
     return fc.get_total_flops()
@@ -187,8 +186,6 @@ def count_flops(step: Callable[[], object]) -> float:
 
 def bench_setting(setting: str, names: list[str], cfg: Config, official) -> list[dict]:
     """Every policy of one setting (and the official architecture), timed in the same alternating rounds."""
-    from cotpc.training.precision import time_alternating
-
     steps, infos = {}, {}
     for name in names:
         steps[name], infos[name] = policy_step(name, setting, cfg.bf16)
@@ -210,8 +207,6 @@ def bench_setting(setting: str, names: list[str], cfg: Config, official) -> list
 
 
 def run(cfg: Config) -> dict:
-    from cotpc.policies import PRESETS
-
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     official = load_official(cfg.official) if cfg.official else None

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import tyro
 
+from cotpc.studies.suites import suite_of_config, suites
+
 
 def main(argv: list[str], prog: str) -> None:
-    from cotpc.studies.suites import suite_of_config, suites
-
     cfg = tyro.extras.subcommand_cli_from_dict({name: s.demos for name, s in suites().items()}, args=argv, prog=prog)
     suite_of_config(cfg, "demos").make_demos(cfg)

@@ -6,12 +6,11 @@ from __future__ import annotations
 import tyro
 
 from cotpc.evaluation.request import EvalRequest
+from cotpc.policies.policy import read_config
+from cotpc.studies.suites import suite_for_env, suites
 
 
 def run_eval(req: EvalRequest) -> dict:
-    from cotpc.policies.policy import read_config
-    from cotpc.studies.suites import suite_for_env, suites
-
     info = read_config(req.run)
     env_id = info.get("dataset", {}).get("env_id")
     suite = suite_for_env(env_id)

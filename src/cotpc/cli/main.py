@@ -8,6 +8,8 @@ from __future__ import annotations
 import importlib
 import sys
 
+from cotpc import __version__
+
 # verb -> (module with a ``main(argv, prog)`` function, one-line description)
 VERBS: dict[str, tuple[str, str]] = {
     "demos": ("cotpc.cli.demos", "Generate demonstrations of a task suite in ManiSkill3's trajectory format."),
@@ -32,8 +34,6 @@ def main(argv: list[str] | None = None) -> None:
         print(usage())
         return
     if argv[0] == "--version":
-        from cotpc import __version__
-
         print(__version__)
         return
     verb = argv[0]

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import tyro
 
+from cotpc.studies.suites import suite_of_config, suites
+
 
 def main(argv: list[str], prog: str) -> None:
-    from cotpc.studies.suites import suite_of_config, suites
-
     cfg = tyro.extras.subcommand_cli_from_dict({name: s.reproduce for name, s in suites().items()}, args=argv,
                                                prog=prog)
     suite_of_config(cfg, "reproduce").run_study(cfg)

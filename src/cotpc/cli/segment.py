@@ -9,6 +9,11 @@ from typing import Literal
 
 import tyro
 
+from cotpc.data import load_trajectories
+from cotpc.envs.spec import task_defaults
+from cotpc.subskills.evaluate import sweep, sweep_table
+from cotpc.subskills.labeling import label_file, label_file_from_key_steps
+
 Cost = Literal["mean-cosine", "sum-cosine"]
 
 
@@ -49,8 +54,6 @@ class Config:
 
 def defaults_for(env_id: str | None, beta: float | None, cost: str | None) -> tuple[float, str]:
     """Fill unset beta / cost with the task's defaults (cotpc.envs.task_defaults)."""
-    from cotpc.envs.spec import task_defaults
-
     defaults = task_defaults(env_id)
     return (defaults.beta if beta is None else beta), (defaults.cost if cost is None else cost)
 
@@ -77,10 +80,6 @@ def format_summary(path: Path, s: dict) -> str:
 
 
 def run(cfg: Config) -> dict:
-    from cotpc.data import load_trajectories
-    from cotpc.subskills.evaluate import sweep, sweep_table
-    from cotpc.subskills.labeling import label_file
-
     if cfg.min_size < 1:
         raise SystemExit(f"--min-size must be >= 1, got {cfg.min_size}")
     ts = load_trajectories(cfg.data)
@@ -99,20 +98,19 @@ def run(cfg: Config) -> dict:
                       + (f", key_steps within +-{cfg.tol} steps" if keys is not None else ""))
                 print(sweep_table(rows))
         if cfg.plot is not None:
-            from cotpc.subskills.plots import plot_sweep
+            from cotpc.subskills.plots import plot_sweep  # matplotlib (heavy): only with --plot
 
             print(f"wrote {plot_sweep(cfg.plot / 'subskills_sweep.png', tables, cfg.tol)}")
         return {"sweep": tables}
 
     if cfg.privileged:
-        from cotpc.subskills.labeling import label_file_from_key_steps
-
         summary, ends = label_file_from_key_steps(cfg.data, trajectories=ts)
     else:
         beta, cost = defaults_for(env_id, cfg.beta, cfg.cost)
         summary, ends = label_file(cfg.data, beta, cfg.min_size, cost, cfg.tol, trajectories=ts)
     print(json.dumps(summary, indent=1) if cfg.json else format_summary(cfg.data, summary))
     if cfg.plot is not None:
+        # only with --plot: matplotlib, and the task suites (every study, the training stack) are heavy imports
         from cotpc.studies.suites import suite_for_env
         from cotpc.subskills.plots import plot_similarity_maps
 

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+from cotpc.training.train import main as train_main
+
 
 def main(argv: list[str], prog: str) -> None:
-    from cotpc.training.train import main as train_main
-
     train_main(argv, prog=prog)

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from cotpc.data.targets import cot_targets
-from cotpc.data.trajectories import TrajectorySet
+from cotpc.data.trajectories import Episode, TrajectorySet
 
 
 class MissingSubskillsError(ValueError):
@@ -170,8 +170,6 @@ def synthetic_trajectories(
     """Small learnable demos for tests and benchmarks (with ``subskill_ends``): each episode moves a point in
     ``n_segments`` straight segments of random direction; the observation is the position followed by the
     episode's segment directions (so the right action is predictable from the state and the history)."""
-    from cotpc.data.trajectories import Episode
-
     rng = np.random.default_rng(seed)
     episodes = []
     for i in range(n_episodes):

@@ -37,7 +37,8 @@ from typing import Optional
 import numpy as np
 
 from cotpc.data.trajectories import Episode, TrajectorySet, save_trajectories
-from cotpc.envs.kitchen import ENV_ID, HORIZON, NUM_REQUESTED, SEEDS, SUBTASKS, check_seed, validate_tasks
+from cotpc.envs.kitchen import (ENV_ID, HORIZON, NUM_REQUESTED, SEEDS, SUBTASKS, FrankaKitchenOrderedEnv, check_seed,
+                               validate_tasks)
 
 DT = 0.08  # the base environment's control period (40 MuJoCo steps of 2 ms)
 # Gripper frames (columns: the site's x, y and z axes in world coordinates). The site's z axis is the approach
@@ -84,7 +85,7 @@ class IKController:
     KI, I_MAX, I_STILL = 0.3, 0.1, 0.01  # integral action: gain, bound (rad), only when commanded steps < I_STILL
 
     def __init__(self, model, data, home: np.ndarray):
-        import mujoco
+        import mujoco  # the optional [kitchen] extra
 
         self.mujoco = mujoco
         self.model, self.data = model, data
@@ -449,8 +450,6 @@ class Demonstrator:
     """Plans verified demos with its own two environments (one to act in, one to replay in)."""
 
     def __init__(self, max_attempts: int = 6):
-        from cotpc.envs.kitchen import FrankaKitchenOrderedEnv
-
         self.env = FrankaKitchenOrderedEnv()
         self.replay_env = FrankaKitchenOrderedEnv()
         self.max_attempts = max_attempts

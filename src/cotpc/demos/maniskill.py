@@ -19,16 +19,21 @@ solve: the same for any ``--procs`` and after any interruption. Progress is save
 from __future__ import annotations
 
 import collections
+import contextlib
+import io
 import multiprocessing as mp
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Optional
 
+import gymnasium as gym
 import numpy as np
+import torch
+from tqdm import tqdm
 
 from cotpc.data.trajectories import Episode, TrajectoryFormatError, TrajectorySet, load_trajectories, save_trajectories
-from cotpc.envs.maniskill import CONTROL_MODES, HORIZONS, SEEDS, import_maniskill
+from cotpc.envs.maniskill import CONTROL_MODES, HORIZONS, SEEDS, flat_obs, import_maniskill, make_env
 
 PLAN_CONTROL_MODE = "pd_joint_pos"
 PLAN_STEP_LIMIT = 1000  # no time limit interferes with planning or conversion (planner demos are ~100-300 steps)
@@ -36,40 +41,37 @@ PLAN_STEP_LIMIT = 1000  # no time limit interferes with planning or conversion (
 
 def planner_solutions() -> dict:
     """ManiSkill3's motion-planning solutions, by env id."""
-    from mani_skill.examples.motionplanning.panda.run import MP_SOLUTIONS
+    from mani_skill.examples.motionplanning.panda.run import MP_SOLUTIONS  # the optional [maniskill] extra
 
     return MP_SOLUTIONS
+
+
+class Recorder(gym.Wrapper):
+    """Records the actions passed to step(), the flat observations and info['success'] since reset()."""
+
+    def __init__(self, env, record_obs: bool):
+        super().__init__(env)
+        self.record_obs = record_obs
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self.obs, self.actions, self.success = [flat_obs(obs)[0]] if self.record_obs else [], [], []
+        return obs, info
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        a = action.detach().cpu().numpy() if hasattr(action, "detach") else np.asarray(action)
+        self.actions.append(np.asarray(a, dtype=np.float32).reshape(-1))
+        if self.record_obs:
+            self.obs.append(flat_obs(obs)[0])
+        self.success.append(bool(np.asarray(_cpu(info["success"])).reshape(-1)[0]))
+        return obs, reward, terminated, truncated, info
 
 
 class _Worker:
     """One process's environments (built once): planner env, original-mode env and target env for conversion."""
 
     def __init__(self, env_id: str, control_mode: str):
-        import gymnasium as gym
-
-        from cotpc.envs.maniskill import flat_obs, make_env
-
-        class Recorder(gym.Wrapper):
-            """Records the actions passed to step(), the flat observations and info['success'] since reset()."""
-
-            def __init__(self, env, record_obs: bool):
-                super().__init__(env)
-                self.record_obs = record_obs
-
-            def reset(self, **kwargs):
-                obs, info = self.env.reset(**kwargs)
-                self.obs, self.actions, self.success = [flat_obs(obs)[0]] if self.record_obs else [], [], []
-                return obs, info
-
-            def step(self, action):
-                obs, reward, terminated, truncated, info = self.env.step(action)
-                a = action.detach().cpu().numpy() if hasattr(action, "detach") else np.asarray(action)
-                self.actions.append(np.asarray(a, dtype=np.float32).reshape(-1))
-                if self.record_obs:
-                    self.obs.append(flat_obs(obs)[0])
-                self.success.append(bool(np.asarray(_cpu(info["success"])).reshape(-1)[0]))
-                return obs, reward, terminated, truncated, info
-
         solutions = planner_solutions()
         if env_id not in solutions:
             raise ValueError(f"ManiSkill3 has no motion-planning solution for {env_id}; choose from {sorted(solutions)}")
@@ -81,10 +83,7 @@ class _Worker:
 
     def run(self, seed: int) -> dict[str, Any]:
         """Plan and convert one seed: a dict with ``ok`` and, when ok, obs/actions/success and timings."""
-        import contextlib
-        import io
-
-        from mani_skill.trajectory.utils.actions import conversion
+        from mani_skill.trajectory.utils.actions import conversion  # the optional [maniskill] extra
 
         seed = int(seed)
         t0 = time.perf_counter()
@@ -133,8 +132,6 @@ _WORKER: _Worker | None = None
 
 def _init_worker(env_id: str, control_mode: str, threads: int = 1) -> None:
     global _WORKER
-    import torch
-
     torch.set_num_threads(threads)
     _WORKER = _Worker(env_id, control_mode)
 
@@ -198,8 +195,6 @@ def generate_split(
     progress: bool = True,
 ) -> Path:
     """Generate ``num`` successful demos of ``split`` into ``OUT/<split>.{h5,json}`` (resuming saved progress)."""
-    from tqdm import tqdm
-
     if control_mode not in CONTROL_MODES:
         raise ValueError(f"control mode must be one of {CONTROL_MODES}, got {control_mode!r}")
     out = Path(out)
@@ -301,13 +296,13 @@ def generate_split(
 
 def write_splits(env_id: str, out: Path, num: int, test: int, control_mode: str = "pd_joint_delta_pos",
                  procs: int = 1, offset: int = 0, max_attempts: int | None = None,
-                 progress: bool = True) -> dict[str, Path]:
-    """``num`` training and ``test`` test demos of ``env_id`` (:func:`generate_split`), written to
-    ``out/{train,test}.{h5,json}``; resumes or extends what is there. Returns the paths."""
+                 progress: bool = True, val: int = 0) -> dict[str, Path]:
+    """``num`` training, ``val`` validation and ``test`` test demos of ``env_id`` (:func:`generate_split`),
+    written to ``out/{train,val,test}.{h5,json}``; resumes or extends what is there. Returns the paths."""
     import_maniskill()
     start = time.perf_counter()
     paths = {}
-    for split, n in (("train", num), ("test", test)):
+    for split, n in (("train", num), ("val", val), ("test", test)):
         if n > 0:
             paths[split] = generate_split(env_id, split, n, out, control_mode=control_mode, procs=procs,
                                           offset=offset, max_attempts=max_attempts, progress=progress)
@@ -319,8 +314,9 @@ def write_splits(env_id: str, out: Path, num: int, test: int, control_mode: str 
 class ManiSkillDemos:
     """ManiSkill3 demos (needs `pip install -e '.[maniskill]'`): the official motion planner runs headless, its
     pd_joint_pos actions are converted by ManiSkill's converter to --control-mode with state observations, and
-    only demos that succeed after conversion are kept. Writes OUT/train.{h5,json} (seeds 0.., the 'seen' seeds)
-    and OUT/test.{h5,json} (seeds 2000000.., the 'unseen' seeds). Saves progress every few demos; re-running the
+    only demos that succeed after conversion are kept. Writes OUT/train.{h5,json} (seeds 0.., the 'seen' seeds),
+    OUT/val.{h5,json} (seeds 1000000.., for choosing settings and checkpoints) and OUT/test.{h5,json}
+    (seeds 2000000.., the 'unseen' seeds). Saves progress every few demos; re-running the
     same command resumes (or extends a finished split to a larger --num)."""
 
     env: str = "StackCube-v1"
@@ -330,6 +326,9 @@ class ManiSkillDemos:
     """Output directory."""
     num: int = 500
     """Number of (successful) training demos."""
+    val: int = 0
+    """Number of validation demos, from the disjoint validation seed range: choose schedules, settings and
+    checkpoints on these seeds, never on the test seeds."""
     test: int = 100
     """Number of test demos, from the disjoint test seed range (their seeds are the 'unseen' evaluation set)."""
     control_mode: Literal["pd_joint_delta_pos", "pd_ee_delta_pose"] = "pd_joint_delta_pos"
@@ -347,4 +346,4 @@ class ManiSkillDemos:
 def make_demos(cfg: ManiSkillDemos) -> dict[str, Path]:
     """``cotpc demos maniskill`` (mani_skill is imported only when demos are made: an optional extra)."""
     return write_splits(cfg.env, cfg.out, cfg.num, cfg.test, control_mode=cfg.control_mode, procs=cfg.procs,
-                        offset=cfg.offset, max_attempts=cfg.max_attempts, progress=cfg.progress)
+                        offset=cfg.offset, max_attempts=cfg.max_attempts, progress=cfg.progress, val=cfg.val)

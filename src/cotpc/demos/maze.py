@@ -22,6 +22,7 @@ from __future__ import annotations
 import functools
 
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from dataclasses import asdict, dataclass
 from typing import Literal
@@ -46,6 +47,7 @@ from cotpc.envs.moving_maze import (
     WIDTH,
     MazeConfig,
     MazeRules,
+    seeds_for,
     SPEC,
     MovingMazeBatch,
     check_seed,
@@ -245,8 +247,6 @@ def generate(seeds: np.ndarray, split: str, workers: int = 1, landing: str = "ob
         check_seed(int(seed), split)
     plan = functools.partial(plan_demo, landing=landing)
     if workers > 1:
-        from concurrent.futures import ProcessPoolExecutor
-
         with ProcessPoolExecutor(workers) as pool:
             plans = list(pool.map(plan, [int(s) for s in seeds], chunksize=16))
     else:
@@ -283,8 +283,6 @@ def generate_splits(
 ) -> dict[str, TrajectorySet]:
     """Demos of each split from its own seed range: train (the seen configs), val (validation configs for
     selection and diagnostics) and test (the unseen configs). Splits with 0 demos are left out."""
-    from cotpc.envs.moving_maze import seeds_for
-
     start = time.perf_counter()
     sizes = {"train": num_train, "val": num_val, "test": num_test}
     sets = {split: generate(seeds_for(split, n, seed), split, workers, landing) for split, n in sizes.items() if n > 0}

@@ -17,6 +17,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
+from cotpc.data.targets import key_state_indices  # noqa: E402
+from cotpc.demos.maze import plan_demo  # noqa: E402
+
 from cotpc.envs.moving_maze import (  # noqa: E402
     BLOCK,
     BRIDGE1_X_RANGE,
@@ -63,8 +66,6 @@ def draw_path(ax, obs: np.ndarray, key_steps: np.ndarray | None = None) -> None:
 
 
 def make_figure(out: str, num: int = 6) -> None:
-    from cotpc.demos.maze import plan_demo
-
     fig, axes = plt.subplots(1, num, figsize=(2.2 * num, 3.4))
     for ax, seed in zip(axes, seeds_for("train", num)):
         config, obs, actions, key_steps = plan_demo(int(seed))
@@ -81,8 +82,6 @@ def make_figure(out: str, num: int = 6) -> None:
 def plot_maze_paths(out: Path, episodes, ends_list, titles) -> Path:
     """Moving Maze demos (obs[:, :2] = agent x, y): the path coloured by subskill, discovered key states
     (``obs[c_i + 1]``) as circles, privileged ``key_steps`` as black crosses."""
-    from cotpc.data.targets import key_state_indices
-
     k = len(episodes)
     fig, axes = plt.subplots(1, k, figsize=(2.4 * k, 3.6), squeeze=False)
     cmap = plt.get_cmap("tab10")

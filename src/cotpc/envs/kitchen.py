@@ -210,7 +210,7 @@ def import_kitchen():
     try:
         # gymnasium_robotics prints an unrelated notice about Adroit environments to stderr on import.
         with contextlib.redirect_stderr(io.StringIO()):
-            from gymnasium_robotics.envs.franka_kitchen.kitchen_env import KitchenEnv
+            from gymnasium_robotics.envs.franka_kitchen.kitchen_env import KitchenEnv  # the optional [kitchen] extra
     except ImportError as e:
         raise ImportError(f"{ENV_ID} needs the kitchen extra: pip install -e '.[kitchen]' ({e})") from None
     return KitchenEnv
@@ -257,7 +257,7 @@ class FrankaKitchenOrderedEnv(gym.Env):
 
     def set_qpos(self, qpos: np.ndarray) -> None:
         """Put the simulator in the state ``qpos`` (30,) at rest."""
-        import mujoco
+        import mujoco  # the optional [kitchen] extra
 
         self.data.qpos[:] = qpos
         self.data.qvel[:] = 0.0

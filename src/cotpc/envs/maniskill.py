@@ -19,8 +19,11 @@ sizes) from ``reset(seed=...)``. Training demos use seeds from :data:`SEEDS` ``"
 
 from __future__ import annotations
 
+import importlib
 import os
 from typing import Any
+
+import gymnasium as gym
 
 import numpy as np
 
@@ -89,7 +92,7 @@ class InertRenderTexture2D(_InertRenderObject):
 
 def has_render_device() -> bool:
     """Whether SAPIEN finds a rendering (Vulkan) device: constructing a RenderMaterial needs one."""
-    import sapien
+    import sapien  # the optional [maniskill] extra: imported only when a ManiSkill3 task is used
 
     if _HEADLESS:  # already patched: the class in sapien.render is ours, ask the original
         return False
@@ -113,9 +116,7 @@ def ensure_headless() -> bool:
     if os.environ.get("COTPC_NO_HEADLESS") == "1" or has_render_device():
         _HEADLESS = False
         return False
-    import importlib
-
-    import sapien
+    import sapien  # the optional [maniskill] extra
 
     targets = ["sapien.render", "sapien.pysapien.render", "sapien.wrapper.urdf_loader", "sapien.wrapper.renderer",
                "mani_skill.utils.building._mjcf_loader"]
@@ -133,17 +134,15 @@ def ensure_headless() -> bool:
 def import_maniskill():
     """Import mani_skill (registering its tasks) with a clear message when the extra is not installed."""
     try:
-        import mani_skill.envs  # noqa: F401  (registers the tasks with gymnasium)
+        import mani_skill.envs  # noqa: F401  (the optional extra; importing it registers the tasks with gymnasium)
     except ImportError as e:
         raise SystemExit(
             f"ManiSkill3 is not installed ({e}). Install the extra: pip install -e '.[maniskill]' "
             "(mani-skill==3.0.1 needs numpy<2)"
         ) from None
-    import numpy
-
-    if int(numpy.__version__.split(".")[0]) >= 2:
+    if int(np.__version__.split(".")[0]) >= 2:
         raise SystemExit(
-            f"numpy {numpy.__version__} is installed, but ManiSkill3's motion planner (mplib 0.1.1) crashes with "
+            f"numpy {np.__version__} is installed, but ManiSkill3's motion planner (mplib 0.1.1) crashes with "
             "numpy 2; install 'numpy<2' (the [maniskill] extra pins it)"
         )
 
@@ -162,8 +161,6 @@ def make_env(
     ``max_episode_steps`` defaults to :data:`HORIZONS` (the paper's horizon), not ManiSkill's shorter limit.
     ``sim_backend="physx_cuda"`` with ``num_envs=N`` runs N environments on the GPU in one process.
     """
-    import gymnasium as gym
-
     import_maniskill()
     ensure_headless()
     if max_episode_steps is None:

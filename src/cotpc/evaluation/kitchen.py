@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from cotpc.data.trajectories import load_trajectories
-from cotpc.envs.kitchen import ENV_ID, HORIZON, NUM_REQUESTED, check_seed, validate_tasks
+from cotpc.envs.kitchen import ENV_ID, HORIZON, NUM_REQUESTED, FrankaKitchenOrderedEnv, check_seed, validate_tasks
+from cotpc.evaluation.request import load_for_eval
 from cotpc.evaluation.stats import wilson_interval
 
 # Which demo file holds each split's configurations, and the seed range they must come from.
@@ -78,8 +79,6 @@ class EvalResult:
 
 def rollout(policy, configs: list[tuple[int, tuple]], split: str, horizon: int = HORIZON) -> EvalResult:
     """Roll ``policy`` out on every configuration at once."""
-    from cotpc.envs.kitchen import FrankaKitchenOrderedEnv
-
     start = time.perf_counter()
     envs = [FrankaKitchenOrderedEnv() for _ in configs]
     obs = np.stack([env.reset(seed=seed, options={"tasks": list(tasks)})[0] for env, (seed, tasks) in zip(envs, configs)])
@@ -121,8 +120,6 @@ def evaluate(policy, demo_dir: str | Path, split: str, episodes: int | None = No
 def evaluate_run(req, info: dict, env_id: str) -> dict:
     """``cotpc eval`` of a kitchen run: ``req`` an :class:`cotpc.evaluation.request.EvalRequest`, ``info`` the
     run's config.json. Writes the per-episode JSON and prints the summary."""
-    from cotpc.evaluation.request import load_for_eval
-
     if req.rules not in (None, "paper"):
         raise SystemExit(f"cotpc eval: {env_id} has no rule variants (--rules {req.rules})")
     if req.video:

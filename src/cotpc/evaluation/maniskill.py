@@ -29,18 +29,22 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+import torch
+from tqdm import tqdm
 
 from cotpc.data.trajectories import load_trajectories
-from cotpc.envs.maniskill import HORIZONS, SEEDS
+from cotpc.envs.maniskill import HORIZONS, SEEDS, flat_obs, import_maniskill, make_env
+from cotpc.evaluation.request import load_for_eval
 from cotpc.evaluation.stats import wilson_interval
 
-SPLIT_FILES = {"seen": ("train", "train"), "unseen": ("test", "test")}  # split -> (demo file, seed range)
+SPLIT_FILES = {"seen": ("train", "train"), "val": ("val", "val"), "unseen": ("test", "test")}  # split -> (demo file, seed range)
 # ManiSkill3's staged dense reward scaled to [0, 1]: its maximum over an episode measures progress short of success.
 REWARD_MODE = "normalized_dense"
 
 
 def load_split_seeds(demo_dir: str | Path, split: str, episodes: int | None = None) -> tuple[str, str, list[int]]:
-    """(env_id, control_mode, seeds) of ``seen`` (training demos) or ``unseen`` (test demos) in ``demo_dir``."""
+    """(env_id, control_mode, seeds) of ``seen`` (training demos), ``val`` (validation demos) or ``unseen`` (test
+    demos) in ``demo_dir``."""
     if split not in SPLIT_FILES:
         raise ValueError(f"split must be one of {sorted(SPLIT_FILES)}, got {split!r}")
     name, seed_split = SPLIT_FILES[split]
@@ -114,10 +118,6 @@ _STATE: dict[str, Any] = {}
 
 
 def _init_worker(env_id: str, control_mode: str, horizon: int, make_policy: Callable[[], Any], threads: int) -> None:
-    import torch
-
-    from cotpc.envs.maniskill import make_env
-
     torch.set_num_threads(threads)
     _STATE.update(env=make_env(env_id, control_mode, max_episode_steps=horizon, reward_mode=REWARD_MODE),
                   policy=make_policy(), horizon=horizon)
@@ -138,8 +138,6 @@ def stage_flags(info: dict) -> dict[str, np.ndarray]:
 def _episode(seed: int) -> tuple[int, bool, bool, int, dict[str, bool], float]:
     """One episode from ``seed`` in this process's env: (seed, success_once, success_at_end, first success step,
     stage flags ever true, highest normalised dense reward)."""
-    from cotpc.envs.maniskill import flat_obs
-
     env, policy, horizon = _STATE["env"], _STATE["policy"], _STATE["horizon"]
     obs, _ = env.reset(seed=int(seed), options={"reconfigure": True})
     policy.reset()
@@ -176,8 +174,6 @@ def rollout_cpu(
     """Episodes from ``seeds`` on the CPU simulator; ``make_policy`` (picklable, no arguments) builds the policy
     in each process. Returns success_once, success_at_end, first-success steps, stage flags ever true and the
     highest normalised reward of each episode, in the order of ``seeds``."""
-    from tqdm import tqdm
-
     args = (env_id, control_mode, horizon, make_policy, 1)
     bar = functools.partial(tqdm, total=len(seeds), desc=f"eval {env_id}", unit="ep", disable=not progress,
                             dynamic_ncols=True)
@@ -203,11 +199,6 @@ def rollout_gpu(
     progress: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, np.ndarray], np.ndarray]:
     """Episodes from ``seeds`` in ManiSkill3's GPU simulation, ``num_envs`` at a time (untested here: no GPU)."""
-    import torch
-    from tqdm import tqdm
-
-    from cotpc.envs.maniskill import make_env
-
     n = min(num_envs, len(seeds))
     env = make_env(env_id, control_mode, max_episode_steps=horizon, num_envs=n, sim_backend="physx_cuda",
                    reward_mode=REWARD_MODE)
@@ -258,8 +249,6 @@ def evaluate(
     ``backend``: ``"cpu"`` (process pool of ``procs`` single envs), ``"gpu"`` (ManiSkill3's parallel GPU sim,
     ``num_envs`` at once) or ``"auto"`` (gpu when torch sees CUDA).
     """
-    import torch
-
     env_id, control_mode, seeds = load_split_seeds(demo_dir, split, episodes)
     horizon = horizon or HORIZONS[env_id]
     if backend == "auto":
@@ -283,8 +272,6 @@ def evaluate(
 def evaluate_run(req, info: dict, env_id: str) -> dict:
     """``cotpc eval`` of a ManiSkill3 run: ``req`` an :class:`cotpc.evaluation.request.EvalRequest`, ``info`` the
     run's config.json. Writes the per-episode JSON and prints the summary."""
-    from cotpc.envs.maniskill import import_maniskill
-
     if req.rules not in (None, "paper"):
         raise SystemExit(f"cotpc eval: {env_id} has no rule variants (--rules {req.rules}); {req.run} was trained on it")
     import_maniskill()
@@ -315,8 +302,6 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
 def policy_loader(run_dir: str | Path, device: str = "cpu", sampler_steps: int | None = None) -> Callable[[], Any]:
     """A picklable factory loading ``run_dir`` with :func:`cotpc.load_policy` (one copy per process); with
     ``sampler_steps``, a diffusion policy samples with that many DDIM steps."""
-    from cotpc.evaluation.request import load_for_eval
-
     return functools.partial(load_for_eval, str(run_dir), device, sampler_steps)
 
 

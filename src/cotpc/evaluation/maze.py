@@ -11,12 +11,14 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import imageio.v2 as imageio
 import numpy as np
 
 from cotpc.data.trajectories import load_trajectories
 from cotpc.envs.moving_maze import (
     ENV_ID, HORIZON, PAPER_MIN_ACTION, RULES, MazeConfig, MazeRules, MovingMazeBatch, check_seed, render_frame,
 )
+from cotpc.evaluation.request import load_for_eval
 from cotpc.evaluation.stats import wilson_interval
 
 # Which demo file holds each split's configurations, and the seed range they must come from. "val" configs are
@@ -138,8 +140,6 @@ def rollout(
 
 def write_videos(frames: list[list[np.ndarray]], seeds: list[int], success: np.ndarray, out_dir: str | Path) -> list[Path]:
     """One GIF per recorded episode: agent, blocks and the path so far."""
-    import imageio.v2 as imageio
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
@@ -182,8 +182,6 @@ def evaluate(
 def evaluate_run(req, info: dict, env_id: str) -> dict:
     """``cotpc eval`` of a Moving Maze run: ``req`` an :class:`cotpc.evaluation.request.EvalRequest`, ``info`` the
     run's config.json. Writes the per-episode JSON and prints the summary."""
-    from cotpc.evaluation.request import load_for_eval
-
     rules_name = req.rules or "paper"
     if rules_name not in RULES:
         raise SystemExit(f"cotpc eval: unknown Moving Maze rules {rules_name!r}; expected one of {', '.join(RULES)}")

@@ -10,6 +10,8 @@ from typing import Literal, Optional
 
 import tyro
 
+from cotpc.policies.policy import load_policy
+
 
 @dataclass
 class EvalRequest:
@@ -68,8 +70,6 @@ class EvalRequest:
 def load_for_eval(run_dir: str | Path, device: str = "cpu", sampler_steps: Optional[int] = None):
     """:func:`cotpc.load_policy`, with the diffusion sampler's step count replaced when ``sampler_steps`` is set
     (module level, so a process pool can pickle a ``functools.partial`` of it)."""
-    from cotpc.policies.policy import load_policy
-
     policy = load_policy(run_dir, device=device)
     if sampler_steps is not None:
         cfg = policy.model.cfg

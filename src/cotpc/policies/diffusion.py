@@ -215,6 +215,7 @@ def make_schedulers(train_steps: int, clip_sample: float):
     """DDPM for training and DDIM (eta 0: deterministic given the initial noise) for sampling, the squared-cosine
     schedule with epsilon prediction, each step's clean estimate clipped to +-``clip_sample`` (0: no clipping).
     Shared by the diffusion families (diffusers is imported here, when a model is built: it takes seconds)."""
+    # diffusers takes ~1 s to import: only the diffusion families pay for it, when a model is built
     from diffusers.schedulers.scheduling_ddim import DDIMScheduler
     from diffusers.schedulers.scheduling_ddpm import DDPMScheduler
 

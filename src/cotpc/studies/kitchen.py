@@ -17,15 +17,21 @@ import platform
 import sys
 import time
 from dataclasses import asdict, dataclass
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
+import torch
 
-from cotpc.demos.kitchen import KitchenDemos, make_demos
+from cotpc.data.trajectories import load_trajectories, save_trajectories
+from cotpc.demos.kitchen import KitchenDemos, generate, make_demos, print_report, write_splits
 from cotpc.envs.kitchen import ENV_ID, HORIZON, PAPER_AVG_COMPLETED, PAPER_SUCCESS
 from cotpc.envs.spec import task_defaults
-from cotpc.evaluation.kitchen import evaluate_run
+from cotpc.evaluation.kitchen import evaluate, evaluate_run, load_split_configs
+from cotpc.policies import get_preset
+from cotpc.subskills.labeling import label_file
+from cotpc.training.train import TrainConfig, resolve_device
 from cotpc.studies.runs import Evaluation, cpu_count, fresh_eval, plot_learning_curves, stats, train_and_evaluate
 from cotpc.studies.suites import Suite, register_suite
 
@@ -68,10 +74,6 @@ class KitchenReproduce:
 
 def reproduce(cfg: KitchenReproduce) -> dict:
     """``cotpc reproduce kitchen``: run the study of the flags, print a summary."""
-    from cotpc.policies.config import get_preset
-    from cotpc.subskills.labeling import label_file
-    from cotpc.training.train import resolve_device
-
     for name in cfg.policies:
         get_preset(name)  # an unknown policy fails here, not after the demos
     t_start = time.perf_counter()
@@ -97,9 +99,10 @@ def reproduce(cfg: KitchenReproduce) -> dict:
             flush=True)
 
     device = resolve_device(cfg.device)
-    extra_train_args = {"device": cfg.device, "batch_size": cfg.batch_size, "n_centres": cfg.n_centres}
+    template = TrainConfig(data=demos / "train.h5", iters=cfg.iters, device=cfg.device, batch_size=cfg.batch_size,
+                           n_centres=cfg.n_centres)
     runs = [(name, seed) for name in cfg.policies for seed in range(cfg.seeds)]
-    grid = train_and_evaluate(out, demos / "train.h5", runs, cfg.iters, extra_train_args, evaluations,
+    grid = train_and_evaluate(out, template, runs, evaluations,
                               jobs=cfg.jobs, device=device, step="[3/5]", after_run=print_run)
     results: dict = {
         name: {split: {**stats([100 * x["success_rate"] for x in per_split[split]]),
@@ -107,8 +110,6 @@ def reproduce(cfg: KitchenReproduce) -> dict:
                for split in splits}
         for name, per_split in grid.summaries.items()
     }
-    import torch
-
     results["meta"] = {
         "command": " ".join(["cotpc"] + sys.argv[1:]) if sys.argv and "cotpc" in sys.argv[0] else None,
         "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()},
@@ -144,9 +145,6 @@ def write_missing_demos(demos: Path, counts: dict[str, int], seed: int) -> None:
     """Write the splits of ``counts`` (train / val / test -> demos) that are not on disk. Validation and test
     configs use the training demos' ordered combinations: when the training file is on disk, they are read from
     it (in the order they were drawn, which is the order they first appear)."""
-    from cotpc.data.trajectories import load_trajectories, save_trajectories
-    from cotpc.demos.kitchen import generate, print_report, write_splits
-
     missing = {split: n for split, n in counts.items() if n > 0 and not (demos / f"{split}.h5").exists()}
     if not missing:
         return
@@ -167,8 +165,6 @@ def write_missing_demos(demos: Path, counts: dict[str, int], seed: int) -> None:
 
 def evaluate_split(run_dir: Path, load, split: str, demos: Path) -> dict:
     """Evaluate ``load()``'s policy on the configs of ``split``; write ``run_dir/eval_<split>.json``."""
-    from cotpc.evaluation.kitchen import evaluate
-
     r = evaluate(load(), demos, split)
     r.meta.update({"run": str(run_dir), "checkpoint": "last", "demos": str(demos)})
     r.to_json(run_dir / f"eval_{split}.json")
@@ -178,8 +174,6 @@ def evaluate_split(run_dir: Path, load, split: str, demos: Path) -> dict:
 def cached_eval(run_dir: Path, split: str, demos: Path) -> dict | None:
     """The summary of ``eval_<split>.json`` if it was written after the current weights, on exactly the split's
     configs (scene seeds and requested orders) and the full horizon; else None (evaluate again)."""
-    from cotpc.evaluation.kitchen import load_split_configs
-
     saved = fresh_eval(run_dir, f"eval_{split}.json")
     try:
         configs = [(e["seed"], tuple(e["tasks"])) for e in saved["episodes"]]
@@ -190,8 +184,6 @@ def cached_eval(run_dir: Path, split: str, demos: Path) -> dict | None:
 
 
 def _version(dist: str) -> str | None:
-    from importlib.metadata import PackageNotFoundError, version
-
     try:
         return version(dist)
     except PackageNotFoundError:

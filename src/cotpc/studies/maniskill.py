@@ -8,22 +8,28 @@ evaluated weights are the final ones of a fixed schedule, never selected on eval
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import platform
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Literal, Optional
 
 import numpy as np
+import torch
 
-from cotpc.demos.maniskill import ManiSkillDemos, make_demos
-from cotpc.envs.maniskill import is_maniskill_env
-from cotpc.envs.spec import env_spec, task_defaults
-from cotpc.evaluation.maniskill import evaluate_run
-from cotpc.studies.runs import Evaluation, cpu_count, fresh_eval, plot_learning_curves, stats, train_and_evaluate
+from cotpc.demos.maniskill import ManiSkillDemos, make_demos, write_splits
+from cotpc.envs.maniskill import HORIZONS, import_maniskill, is_maniskill_env
+from cotpc.envs.spec import GENERIC, env_spec, task_defaults
+from cotpc.evaluation.maniskill import evaluate, evaluate_run, policy_loader
+from cotpc.studies.runs import (PROTOCOL_CHECKPOINTS, Evaluation, cpu_count, fresh_eval, jsonable,
+                                plot_learning_curves, stats, train_and_evaluate)
+from cotpc.subskills.labeling import label_file
+from cotpc.training.train import TrainConfig
 from cotpc.studies.suites import Suite, register_suite
 
 # The paper's Table 2 (ManiSkill2, state observations, success %). Its Stack Cube number is on unseen configs;
@@ -43,23 +49,23 @@ class ManiSkillStudySettings:
     envs: tuple[str, ...]
     policies: tuple[str, ...]
     seeds: int
-    iters: int
+    train: TrainConfig
+    """What every run shares (schedule, batch, K, ...); its data is replaced by each task's demos/train.h5."""
     num: int | None = None  # training demos per task; None: the paper's (PAPER_DEMOS)
     test: int = 100
+    val: int = 100  # validation demos: their seeds score the checkpoint curve
     seen_episodes: int | None = 100  # None: every training seed
+    curve_episodes: int | None = 50  # validation seeds per kept checkpoint; None: all
+    paper_protocol: bool = False  # also evaluate the last PROTOCOL_CHECKPOINTS kept checkpoints on the test seeds
+    jobs: int = 1
     control_mode: str = "pd_joint_delta_pos"
     horizon: int | None = None  # None: the paper's (cotpc.envs.maniskill.HORIZONS)
     beta: float | None = None  # None: the paper's single-arm beta
     procs: int = 2
     backend: str = "auto"
-    extra_train_args: dict = field(default_factory=dict)
 
 
 def run(s: ManiSkillStudySettings) -> dict:
-    from cotpc.demos.maniskill import write_splits  # mani_skill is imported only here: an optional extra
-    from cotpc.envs.maniskill import HORIZONS, import_maniskill
-    from cotpc.subskills.labeling import label_file
-
     import_maniskill()
     unknown = [e for e in s.envs if e not in HORIZONS]
     if unknown:
@@ -69,14 +75,16 @@ def run(s: ManiSkillStudySettings) -> dict:
     results: dict = {}
     timings: dict = {}
     subskills: dict = {}
+    curves: dict = {}  # env -> "<policy>/seed<k>" -> validation success of each kept checkpoint
+    protocol: dict = {}  # env -> policy -> seed -> unseen success of the last kept checkpoints (paper's protocol)
     demo_counts = {env_id: s.num or PAPER_DEMOS.get(env_id, 500) for env_id in s.envs}
     for env_id in s.envs:
         task = out / env_id
         demos = task / "demos"
         num = demo_counts[env_id]
-        print(f"[1/4] {env_id}: {num} train + {s.test} test planner demos -> {demos}", flush=True)
+        print(f"[1/4] {env_id}: {num} train + {s.val} val + {s.test} test planner demos -> {demos}", flush=True)
         write_splits(env_id, demos, num, s.test, control_mode=s.control_mode, procs=s.procs,
-                     progress=sys.stderr.isatty())
+                     progress=sys.stderr.isatty(), val=s.val)
         defaults = task_defaults(env_id)  # the paper's single-arm setting
         beta, cost = (defaults.beta if s.beta is None else s.beta), defaults.cost
         print(f"[2/4] {env_id}: subskill discovery, {cost} cost, beta={beta}", flush=True)
@@ -89,24 +97,42 @@ def run(s: ManiSkillStudySettings) -> dict:
                                        episodes=s.seen_episodes if split == "seen" else None),
         ) for split in SPLITS}
 
+        template = dataclasses.replace(s.train, data=demos / "train.h5")
+        keep = template.keep_checkpoints
+        curves[env_id], protocol[env_id] = {}, {}
+
         def print_run(name: str, seed: int, run_dir: Path, summaries: dict) -> None:
+            if keep and s.val:
+                curves[env_id][f"{name}/seed{seed}"] = checkpoint_curve(run_dir, demos, "val", s.curve_episodes,
+                                                                        horizon, s)
+            if keep and s.paper_protocol:
+                protocol[env_id].setdefault(name, {})[f"seed{seed}"] = checkpoint_curve(
+                    run_dir, demos, "unseen", None, horizon, s, last=PROTOCOL_CHECKPOINTS)
             print(f"[4/4] {env_id}: {name} seed {seed}: " + "  ".join(
                 f"{split} {100 * summaries[split]['success_once']:.1f}% once / "
                 f"{100 * summaries[split]['success_at_end']:.1f}% at end" for split in SPLITS), flush=True)
 
         runs = [(name, seed) for name in s.policies for seed in range(s.seeds)]
-        grid = train_and_evaluate(task, demos / "train.h5", runs, s.iters, s.extra_train_args, evaluations,
-                                  step=f"[3/4] {env_id}:", after_run=print_run)
+        grid = train_and_evaluate(task, template, runs, evaluations,
+                                  jobs=s.jobs, step=f"[3/4] {env_id}:", after_run=print_run)
         timings.update({f"{env_id}/{run}": t for run, t in grid.train_seconds.items()})
         # "mean"/"std"/"best"/"runs" are success_once, the paper's metric (the maze results' shape);
         # success_at_end is ManiSkill3's stricter one.
         results[env_id] = {name: {split: _aggregate(grid.summaries[name][split]) for split in SPLITS}
                            for name in s.policies}
-    import torch
-
+        for run, curve in curves[env_id].items():
+            name, seed = run.split("/")
+            results[env_id][name].setdefault("val_curve", {})[seed] = curve
+        for name, by_seed in protocol[env_id].items():
+            results[env_id][name]["paper_protocol"] = {
+                "best": max(max(c["success_once"]) for c in by_seed.values()),
+                "rule": f"best over {len(by_seed)} run(s) x the last {PROTOCOL_CHECKPOINTS} kept checkpoints, "
+                        "success_once on the unseen (test) seeds: selected on the test seeds",
+                "runs": by_seed,
+            }
     results["meta"] = {
         "command": " ".join(["cotpc"] + sys.argv[1:]) if sys.argv and "cotpc" in sys.argv[0] else None,
-        "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(s).items()},
+        "settings": jsonable(s),
         "demos": demo_counts,
         "horizons": {e: s.horizon or HORIZONS[e] for e in s.envs},
         "subskills": subskills,
@@ -137,8 +163,6 @@ def _aggregate(summaries: list[dict]) -> dict:
 
 
 def _version(module: str) -> str | None:
-    from importlib.metadata import PackageNotFoundError, version
-
     try:
         return version(module.replace("_", "-"))
     except PackageNotFoundError:
@@ -148,8 +172,6 @@ def _version(module: str) -> str | None:
 def _evaluate(run_dir: Path, load, split: str, demos: Path, s: ManiSkillStudySettings, episodes: int | None) -> dict:
     """A new evaluation of ``run_dir``'s final weights on ``split``, written to ``eval_<split>.json``. ``load`` is
     unused: the evaluator loads the policy itself (one copy per process)."""
-    from cotpc.evaluation.maniskill import evaluate, policy_loader  # mani_skill: an optional extra
-
     r = evaluate(policy_loader(run_dir), demos, split, episodes, horizon=s.horizon, procs=s.procs, backend=s.backend,
                  progress=sys.stderr.isatty())
     r.meta.update({"run": str(run_dir), "checkpoint": "last", "demos": str(demos)})
@@ -171,17 +193,62 @@ def _cached_eval(run_dir: Path, split: str, horizon: int, episodes: int | None) 
     return summary
 
 
+def checkpoint_curve(run_dir: Path, demos: Path, split: str, episodes: int | None, horizon: int,
+                     s: ManiSkillStudySettings, last: int | None = None) -> dict:
+    """success_once and success_at_end (%) on ``split`` of each checkpoint kept under ``run_dir/checkpoints``
+    (the ``last`` ones when given), with the iteration and the training samples it had seen. Each checkpoint's
+    evaluation is saved beside its weights and reused while fresh, so an interrupted study picks up here too."""
+    kept = sorted((run_dir / "checkpoints").glob("step_*"))
+    kept = kept[-last:] if last else kept
+    batch = json.loads((run_dir / "config.json").read_text())["train"]["batch_size"]
+    curve: dict = {"iteration": [], "samples": [], "success_once": [], "success_at_end": []}
+    for ckpt in kept:
+        summary = _cached_eval(ckpt, split, horizon, episodes)
+        if summary is None:
+            summary = _evaluate(ckpt, None, split=split, demos=demos, s=s, episodes=episodes)
+        step = int(ckpt.name.split("_")[1])
+        curve["iteration"].append(step)
+        curve["samples"].append(step * batch)
+        curve["success_once"].append(100 * summary["success_once"])
+        curve["success_at_end"].append(100 * summary["success_at_end"])
+    return curve
+
+
+def plot_val_curves(curves: dict, path: Path) -> Path:
+    """Validation success_once against training samples seen, one line per run (seed 0 solid)."""
+    import matplotlib  # heavy (about 1 s): imported only when a figure is drawn
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    colours: dict = {}
+    for run, c in sorted(curves.items()):
+        name, seed = run.split("/")
+        colour = colours.setdefault(name, f"C{len(colours)}")
+        ax.plot(np.array(c["samples"]) / 1e6, c["success_once"], "o-" if seed == "seed0" else ".--", ms=3,
+                color=colour, label=name if seed == "seed0" else None, lw=1.5 if seed == "seed0" else 0.8)
+    ax.set_xlabel("training samples seen (millions)")
+    ax.set_ylabel("val success_once (%)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def write_report(results: dict, out: Path) -> Path:
     """``OUT/report.md``: per task, success_once and success_at_end on seen and unseen seeds beside the paper."""
     meta = results["meta"]
     s = meta["settings"]
-    extra = s["extra_train_args"]
+    extra = s["train"]
     lines = [
         "# ManiSkill3 results",
         "",
         f"Command: `{meta.get('command') or 'cotpc reproduce maniskill'}`  ",
-        f"{s['iters']} training iterations per run at batch {extra.get('batch_size') or 'default (256; bc 32)'}, "
-        f"{extra.get('n_centres') or 'default (128)'} k-means centres, {s['seeds']} seed(s) per policy, "
+        f"{extra['iters']} training iterations per run at batch {extra.get('batch_size') or 'default (256; bc 32)'}, "
+        f"{extra.get('n_centres') or f'default ({GENERIC.n_centres})'} k-means centres, {s['seeds']} seed(s) per policy, "
         f"{s['control_mode']} actions, state observations. Checkpoints: {meta['checkpoint_selection']}.  ",
         f"This invocation {meta['wall_seconds'] / 60:.1f} min on {meta['hardware']['cpus']} CPU(s) "
         f"({meta['hardware']['machine']}{', ' + meta['hardware']['cuda'] if meta['hardware'].get('cuda') else ''}); "
@@ -235,6 +302,28 @@ def write_report(results: dict, out: Path) -> Path:
             cells = [name, *(f"{u['stages_once'].get(k, float('nan')):.1f}" for k in stages),
                      f"{u['max_normalized_reward']:.3f}"]
             lines.append("| " + " | ".join(cells) + " |")
+        curves = {f"{name}/{seed}": c for name, r in by_policy.items() for seed, c in r.get("val_curve", {}).items()}
+        if curves:
+            lines += [
+                "",
+                f"Validation success_once (%) of each kept checkpoint (`--keep-checkpoints`), on the first "
+                f"{s.get('curve_episodes') or 'all'} validation seeds (a range disjoint from the seen and unseen "
+                "ones): how success grows with the training samples seen, for choosing a schedule without the test "
+                "seeds. The checkpoints are points of one cosine schedule, not runs trained to that length.",
+                "",
+                "| run | " + " | ".join(f"{i // 1000}K" if i % 1000 == 0 else str(i)
+                                       for i in next(iter(curves.values()))["iteration"]) + " |",
+                "|---|" + "---|" * len(next(iter(curves.values()))["iteration"]),
+            ]
+            for run, c in curves.items():
+                lines.append(f"| {run} | " + " | ".join(f"{v:.0f}" for v in c["success_once"]) + " |")
+            figure = plot_val_curves(curves, out / f"val_success_{env_id}.png")
+            lines += ["", f"![validation success {env_id}]({figure.name})"]
+        protocol = {name: r["paper_protocol"] for name, r in by_policy.items() if "paper_protocol" in r}
+        if protocol:
+            lines += ["", "**The paper's protocol** (not our number: it selects on the test seeds): "
+                          + "; ".join(f"{name} {p['best']:.1f}" for name, p in protocol.items())
+                          + f". Rule: {next(iter(protocol.values()))['rule']}."]
         figure = plot_learning_curves(out / env_id / "runs", list(by_policy), out / f"learning_curves_{env_id}.png")
         lines += ["", f"![learning curves {env_id}]({figure.name})"]
     path = out / "report.md"
@@ -267,6 +356,19 @@ class ManiSkillReproduce:
     """Training demos per task (default: the paper's, 500 Stack Cube and 1000 Peg Insertion)."""
     test: int = 100
     """Test demos per task: their seeds are the unseen evaluation set."""
+    val: int = 100
+    """Validation demos per task: their seeds (a disjoint range) score the checkpoint curve of
+    --keep-checkpoints, for choosing a schedule without the test seeds."""
+    keep_checkpoints: bool = False
+    """Keep 20 checkpoints per run, evenly spaced, and evaluate each on --curve-episodes validation seeds (a curve
+    of validation success against training samples)."""
+    curve_episodes: Optional[int] = 50
+    """Validation seeds per kept checkpoint (0 = all of --val)."""
+    paper_protocol: bool = False
+    """With --keep-checkpoints, also evaluate the last 20 kept checkpoints on the test seeds and report the best
+    (the paper's protocol, labelled: it selects on the test seeds)."""
+    jobs: int = 1
+    """Runs trained at once, each with cores / jobs threads (2 on a 2-core CPU: two runs side by side)."""
     seen_episodes: Optional[int] = 100
     """Evaluate seen success on the first N training seeds (default 100; 0 = all)."""
     control_mode: Literal["pd_joint_delta_pos", "pd_ee_delta_pose"] = "pd_joint_delta_pos"
@@ -284,10 +386,12 @@ class ManiSkillReproduce:
 def reproduce(cfg: ManiSkillReproduce) -> dict:
     """``cotpc reproduce maniskill``: run the study of the flags, print a summary."""
     results = run(ManiSkillStudySettings(
-        out=cfg.out, envs=tuple(cfg.envs), policies=tuple(cfg.policies), seeds=cfg.seeds, iters=cfg.iters,
-        num=cfg.num, test=cfg.test, seen_episodes=cfg.seen_episodes or None, control_mode=cfg.control_mode,
-        horizon=cfg.horizon, procs=cfg.procs, backend=cfg.backend,
-        extra_train_args={"device": cfg.device, "batch_size": cfg.batch_size, "n_centres": cfg.n_centres},
+        out=cfg.out, envs=tuple(cfg.envs), policies=tuple(cfg.policies), seeds=cfg.seeds,
+        num=cfg.num, test=cfg.test, val=cfg.val, seen_episodes=cfg.seen_episodes or None,
+        curve_episodes=cfg.curve_episodes or None, paper_protocol=cfg.paper_protocol, jobs=cfg.jobs,
+        control_mode=cfg.control_mode, horizon=cfg.horizon, procs=cfg.procs, backend=cfg.backend,
+        train=TrainConfig(data=cfg.out / "<task>" / "demos" / "train.h5", iters=cfg.iters, device=cfg.device,
+                          batch_size=cfg.batch_size, n_centres=cfg.n_centres, keep_checkpoints=cfg.keep_checkpoints),
     ))
     print()
     print(f"{'task':<22}{'policy':<10}{'seen %':>10}{'unseen %':>10}   (success_once, mean over seeds)")

@@ -7,25 +7,29 @@ schedule; nothing is ever selected on evaluation success.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import platform
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
+import torch
 
-from cotpc.demos.maze import MazeDemos, make_demos
+from cotpc.demos.maze import MazeDemos, make_demos, write_splits
 from cotpc.envs.moving_maze import ENV_ID, HORIZON, PAPER_MIN_ACTION, RULES, SPEC
 from cotpc.evaluation.maze import eval_name, evaluate, evaluate_run, load_split_configs
 from cotpc.studies.suites import Suite, register_suite
 from cotpc.studies.runs import (
-    PROTOCOL_CHECKPOINTS, Evaluation, cpu_count, fresh_eval, plot_learning_curves, policy_loader, stats,
+    PROTOCOL_CHECKPOINTS, Evaluation, cpu_count, fresh_eval, jsonable, plot_learning_curves, policy_loader, stats,
     train_and_evaluate,
 )
+from cotpc.subskills.labeling import label_file
+from cotpc.training.train import TrainConfig, resolve_device
 
 # The paper's Table 1 (Moving Maze, unseen configs, success %). Its ablations (Table 4) are on ManiSkill2 only.
 PAPER_UNSEEN = SPEC.paper_success
@@ -54,7 +58,8 @@ ABLATIONS = ("only-last", "only-next", "random", "vanilla", "o-shared", "swapped
 class ReproduceSettings:
     out: Path
     seeds: int
-    iters: int
+    train: TrainConfig
+    """What every run shares (schedule, batch, K, ...); its data is the study's demos/train.h5."""
     policies: tuple[str, ...]
     ablations: tuple[str, ...]
     beta: float
@@ -65,14 +70,9 @@ class ReproduceSettings:
     demo_seed: int = 0
     workers: int = 2
     jobs: int = 1
-    extra_train_args: dict = field(default_factory=dict)
 
 
 def run(s: ReproduceSettings) -> dict:
-    from cotpc.demos.maze import write_splits
-    from cotpc.subskills.labeling import label_file
-    from cotpc.training.train import resolve_device
-
     t_start = time.perf_counter()
     out = Path(s.out)
     demos = out / "demos"
@@ -93,7 +93,8 @@ def run(s: ReproduceSettings) -> dict:
     names = list(s.policies) + [a for a in s.ablations if a not in s.policies]
     # ablations: one seed each
     runs = [(name, seed) for name in names for seed in (range(s.seeds) if name in s.policies else range(1))]
-    eval_device = resolve_device(s.extra_train_args.get("device", "auto"))
+    template = dataclasses.replace(s.train, data=demos / "train.h5")
+    eval_device = resolve_device(template.device)
     evaluations = {key: Evaluation(cached=functools.partial(_cached_eval, key=key, seeds=split_seeds[split]),
                                    evaluate=functools.partial(_evaluate_run, key=key, demos=demos,
                                                               videos=out / "videos"))
@@ -102,7 +103,7 @@ def run(s: ReproduceSettings) -> dict:
     protocol: dict = {name: {} for name in names}  # the paper's protocol, with --keep-checkpoints
 
     def after_run(name: str, seed: int, run_dir: Path, summaries: dict) -> None:
-        if s.extra_train_args.get("keep_checkpoints"):
+        if template.keep_checkpoints:
             curves[f"{name}/seed{seed}"] = checkpoint_curve(run_dir, demos, split_seeds["val"], eval_device)
             protocol[name][f"seed{seed}"] = last_checkpoints_success(run_dir, demos, split_seeds["unseen"],
                                                                      eval_device)
@@ -115,7 +116,7 @@ def run(s: ReproduceSettings) -> dict:
             flush=True,
         )
 
-    grid = train_and_evaluate(out, demos / "train.h5", runs, s.iters, s.extra_train_args, evaluations,
+    grid = train_and_evaluate(out, template, runs, evaluations,
                               jobs=s.jobs, device=eval_device, step="[3/5]", after_run=after_run)
     timings = grid.train_seconds
     for name in names:
@@ -134,11 +135,9 @@ def run(s: ReproduceSettings) -> dict:
                         "success on the unseen (test) configs under the paper's rules: selected on the test configs",
                 "runs": protocol[name],
             }
-    import torch
-
     results["meta"] = {
         "command": " ".join(["cotpc"] + sys.argv[1:]) if sys.argv and "cotpc" in sys.argv[0] else None,
-        "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(s).items()},
+        "settings": jsonable(dataclasses.replace(s, train=template)),
         "ablations": [a for a in s.ablations if a not in s.policies],
         "subskills": seg,
         "versions": {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__},
@@ -233,9 +232,9 @@ def write_report(results: dict, out: Path) -> Path:
         f"Command: `{meta.get('command') or 'cotpc reproduce maze'}`  ",
         f"{s['train_demos']} training demos (seen configs), {s.get('val_demos', 0)} validation configs, "
         f"{s['test_demos']} test demos (unseen configs), "
-        f"subskills: {s['cost']} cost, beta {s['beta']}, {s['iters']} training iterations per run at batch "
-        f"{s['extra_train_args'].get('batch_size') or 'default (256; bc 32)'}, "
-        f"{s['extra_train_args'].get('n_centres') or 'default (1024)'} k-means centres, {s['seeds']} seed(s) per policy, "
+        f"subskills: {s['cost']} cost, beta {s['beta']}, {s['train']['iters']} training iterations per run at batch "
+        f"{s['train']['batch_size'] or 'default (256; bc 32)'}, "
+        f"{s['train']['n_centres'] or f'default ({SPEC.defaults.n_centres})'} k-means centres, {s['seeds']} seed(s) per policy, "
         f"horizon {meta['horizon']}.  ",
         f"Checkpoints: {meta['checkpoint_selection']}.  ",
         f"Training {meta.get('train_seconds_total', 0) / 60:.1f} min in all, this invocation "
@@ -318,7 +317,7 @@ def write_report(results: dict, out: Path) -> Path:
 
 
 def _plots(results: dict, out: Path, names: list[str]) -> list[Path]:
-    import matplotlib
+    import matplotlib  # heavy (about 1 s): imported only when a figure is drawn
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -350,7 +349,7 @@ def _plots(results: dict, out: Path, names: list[str]) -> list[Path]:
 
 def plot_val_success(curves: dict, names: list[str], path: Path) -> Path:
     """Validation success against training iterations, one panel per rule, one line per run."""
-    import matplotlib
+    import matplotlib  # heavy (about 1 s): imported only when a figure is drawn
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -441,7 +440,6 @@ def reproduce(cfg: MazeReproduce) -> dict:
     settings = ReproduceSettings(
         out=cfg.out,
         seeds=quick.get("seeds", cfg.seeds),
-        iters=cfg.iters or quick.get("iters", FULL_ITERS),
         policies=tuple(cfg.policies or quick.get("policies", BASELINES)),
         ablations=tuple(cfg.ablations if cfg.ablations is not None else quick.get("ablations", ABLATIONS)),
         beta=cfg.beta if cfg.beta is not None else SPEC.defaults.beta,
@@ -451,10 +449,11 @@ def reproduce(cfg: MazeReproduce) -> dict:
         val_demos=cfg.val_demos,
         workers=cfg.workers,
         jobs=cfg.jobs,
-        extra_train_args={"device": cfg.device, "batch_size": cfg.batch_size or quick.get("batch_size"),
-                          "n_centres": cfg.n_centres or quick.get("n_centres"),
-                          "keep_checkpoints": cfg.keep_checkpoints, "cot_weight": cfg.cot_weight,
-                          **({"grad_clip": cfg.grad_clip} if cfg.grad_clip is not None else {})},
+        train=TrainConfig(
+            data=cfg.out / "demos" / "train.h5", iters=cfg.iters or quick.get("iters", FULL_ITERS), device=cfg.device,
+            batch_size=cfg.batch_size or quick.get("batch_size"), n_centres=cfg.n_centres or quick.get("n_centres"),
+            keep_checkpoints=cfg.keep_checkpoints, cot_weight=cfg.cot_weight,
+            **({"grad_clip": cfg.grad_clip} if cfg.grad_clip is not None else {})),
     )
     results = run(settings)
     print()
@@ -470,7 +469,7 @@ def reproduce(cfg: MazeReproduce) -> dict:
 
 
 def _subskill_plots(plot_dir: Path, episodes: list, ends: list, titles: list) -> list[Path]:
-    from cotpc.demos.maze_figure import plot_maze_paths
+    from cotpc.demos.maze_figure import plot_maze_paths  # imports matplotlib (heavy): only when plotting
 
     return [plot_maze_paths(plot_dir / "subskills_maze_paths.png", episodes, ends, titles)]
 

@@ -7,14 +7,21 @@ generic study runner: a study declares its runs and its :class:`Evaluation` s an
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
+import multiprocessing as mp
+import os
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Optional
 
 import numpy as np
+
+from cotpc.policies import config_from_dict, config_to_dict, get_preset, load_policy
+from cotpc.training.train import TrainConfig, train
 
 # The paper reports the best of 3 runs over the last 20 checkpoints (ManiSkill2; the protocol of Diffusion Policy).
 # With --keep-checkpoints a run keeps this many, evenly spaced over its schedule.
@@ -26,44 +33,59 @@ def stats(rates: list[float]) -> dict:
     return {"mean": float(a.mean()), "std": float(a.std(ddof=0)), "best": float(a.max()), "runs": [float(r) for r in a]}
 
 
-def _train_worker(args: tuple) -> tuple[str, int, float | None]:
-    run_dir, data, name, seed, iters, extra = args
-    return name, seed, train_run(run_dir, data, name, seed, iters, extra, step="[3/5]")
+def jsonable(settings) -> dict:
+    """A study's settings dataclass (nested TrainConfig included) as JSON values: paths as strings."""
+    def convert(v):
+        if isinstance(v, Path):
+            return str(v)
+        if isinstance(v, dict):
+            return {k: convert(x) for k, x in v.items()}
+        if isinstance(v, (list, tuple)):
+            return [convert(x) for x in v]
+        return v
+
+    return convert(dataclasses.asdict(settings))
 
 
-def train_parallel(out: Path, data: Path, runs: list[tuple[str, int]], iters: int, extra_train_args: dict,
-                   jobs: int) -> None:
+def _train_worker(config: TrainConfig) -> tuple[str, int, float | None]:
+    return config.policy, config.seed, train_run(config, step="[3/5]")
+
+
+def run_config(template: TrainConfig, run_dir: Path, policy: str, seed: int) -> TrainConfig:
+    """One run of a study's grid: the study's ``template`` (data, schedule and every setting the runs share) with
+    this run's policy, seed and directory; resuming when a training state is there, ten validation points, and a
+    checkpoint every tenth of the run (every twentieth, kept, with ``keep_checkpoints``): a killed study loses at
+    most that much of one run."""
+    iters = template.iters
+    return dataclasses.replace(
+        template, policy=policy, seed=seed, out=run_dir, resume=(run_dir / "training_state.pt").exists(),
+        progress=sys.stderr.isatty(), val_every=max(iters // 10, 1),
+        ckpt_every=max(iters // (PROTOCOL_CHECKPOINTS if template.keep_checkpoints else 10), 1),
+    )
+
+
+def train_parallel(out: Path, template: TrainConfig, runs: list[tuple[str, int]], jobs: int) -> None:
     """Train the unfinished ``runs`` in ``jobs`` processes at once. One small model leaves a GPU (or a many-core
     CPU) mostly idle, so independent runs in parallel finish the study several times sooner. Each process gets
     cores / jobs threads; the runs are the same as trained one by one with that thread count."""
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor
-
-    todo = [(name, seed) for name, seed in runs if not finished(
-        out / "runs" / name / f"seed{seed}", iters, {"policy": name, "seed": seed, **extra_train_args})]
+    template = dataclasses.replace(template, threads=template.threads or max(1, cpu_count() // jobs))
+    todo = [run_config(template, out / "runs" / name / f"seed{seed}", name, seed) for name, seed in runs]
+    todo = [config for config in todo if not finished(config.out, config)]
     if not todo:
         return
-    extra = {**extra_train_args, "threads": extra_train_args.get("threads") or max(1, cpu_count() // jobs)}
     print(f"[3/5] training {len(todo)} runs, {jobs} at a time", flush=True)
     # spawn: a forked child must not inherit CUDA or OpenMP state
     with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
-        args = [(out / "runs" / name / f"seed{seed}", data, name, seed, iters, extra) for name, seed in todo]
-        for name, seed, seconds in pool.map(_train_worker, args):
+        for name, seed, seconds in pool.map(_train_worker, todo):
             print(f"[3/5] done: {name} seed {seed} ({seconds} s)", flush=True)
 
 
 def policy_loader(run_dir: Path, device: str):
     """A function that loads the run's policy on its first call only (no load when every evaluation is cached)."""
-    import functools
-
-    from cotpc import load_policy
-
     return functools.cache(lambda: load_policy(run_dir, device=device))
 
 
 def cpu_count() -> int:
-    import os
-
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
@@ -78,29 +100,15 @@ def fresh_eval(run_dir: Path, name: str) -> dict | None:
         return None
 
 
-def train_run(run_dir: Path, data: Path, policy: str, seed: int, iters: int, extra_train_args: dict,
-              step: str = "") -> float | None:
-    """Train ``policy`` into ``run_dir`` unless a finished run of ``iters`` iterations is there (resuming an
+def train_run(config: TrainConfig, step: str = "") -> float | None:
+    """Train ``config`` (a :func:`run_config`) unless a finished run of it is in ``config.out`` (resuming an
     interrupted one). Returns the training seconds measured when the run was trained (maybe by an earlier call)."""
-    from cotpc.training.train import TrainConfig, train
-
+    run_dir = config.out
     t0 = time.perf_counter()
-    if not finished(run_dir, iters, {"policy": policy, "seed": seed, **extra_train_args}):
-        print(f"{step} train {policy} seed {seed} ({iters} iters) -> {run_dir}".strip(), flush=True)
-        cfg = TrainConfig(
-            data=data,
-            policy=policy,
-            out=run_dir,
-            iters=iters,
-            seed=seed,
-            resume=(run_dir / "training_state.pt").exists(),
-            progress=sys.stderr.isatty(),
-            val_every=max(iters // 10, 1),  # ten points on the learning curve
-            # a killed study loses at most a tenth of one run; kept checkpoints: the paper's protocol's 20
-            ckpt_every=max(iters // (PROTOCOL_CHECKPOINTS if extra_train_args.get("keep_checkpoints") else 10), 1),
-            **extra_train_args,
-        )
-        train(cfg)
+    if not finished(run_dir, config):
+        print(f"{step} train {config.policy} seed {config.seed} ({config.iters} iters) -> {run_dir}".strip(),
+              flush=True)
+        train(config)
         (run_dir / "timing.json").write_text(json.dumps({"train_seconds": round(time.perf_counter() - t0, 1)}))
     timing = run_dir / "timing.json"
     return json.loads(timing.read_text())["train_seconds"] if timing.exists() else None
@@ -109,42 +117,41 @@ def train_run(run_dir: Path, data: Path, policy: str, seed: int, iters: int, ext
 # Train settings that do not change what a run learns (where it ran, how it reports): ignored when a run on disk
 # is compared with the one a study asks for.
 RUN_ONLY = {"data", "out", "resume", "device", "threads", "progress", "keep_checkpoints", "val_every", "ckpt_every",
-             "log_every", "stop_after", "bf16"}
+            "log_every", "stop_after", "bf16"}
+_DEFAULTS = {f.name: f.default for f in dataclasses.fields(TrainConfig) if f.default is not dataclasses.MISSING}
 
 
-def finished(run_dir: Path, iters: int, wanted: dict | None = None) -> bool:
-    """Whether ``run_dir`` holds a finished run of ``iters`` iterations. A run on disk trained with other settings
-    than ``wanted`` (TrainConfig fields) is an error, not something to reuse or resume silently."""
+def finished(run_dir: Path, wanted: TrainConfig) -> bool:
+    """Whether ``run_dir`` holds a finished run of ``wanted``. A run on disk trained with other settings (any
+    TrainConfig field that changes what a run learns, or the preset's design) is an error, not something to reuse
+    or resume silently."""
     cfg = run_dir / "config.json"
     if not cfg.exists():
         return False
     info = json.loads(cfg.read_text())
     saved = info.get("train", {})
-    wanted = {"iters": iters, **(wanted or {})}
     ignore = set(RUN_ONLY)
-    if "policy" in wanted:
-        from cotpc.policies.config import get_preset
-
-        preset = get_preset(wanted["policy"])
-        if not preset.n_kmeans_centres:
-            ignore.add("n_centres")  # no k-means head: K changes nothing (BC/DT runs serve studies with any K)
-        if not preset.cot_targets:
-            ignore.add("cot_weight")  # no CoT loss: its weight changes nothing
-    diff = {k: (saved.get(k), v) for k, v in wanted.items() if k not in ignore and saved.get(k) != v}
-    if "policy" in wanted and "policy" in info:  # the preset's design (a preset name can change meaning)
+    preset = get_preset(wanted.policy)
+    if not preset.n_kmeans_centres:
+        ignore.add("n_centres")  # no k-means head: K changes nothing (BC/DT runs serve studies with any K)
+    if not preset.cot_targets:
+        ignore.add("cot_weight")  # no CoT loss: its weight changes nothing
+    diff = {}
+    for f in dataclasses.fields(TrainConfig):
+        now, was = getattr(wanted, f.name), saved.get(f.name, _DEFAULTS.get(f.name))  # (keys older runs lack)
+        if f.name not in ignore and was != now:
+            diff[f.name] = (was, now)
+    if "policy" in info:  # the preset's design (a preset name can change meaning)
         diff.update(_design_diff(info["policy"], preset))
     if diff:
         raise ValueError(f"{run_dir} holds a run trained with other settings (saved, asked for): {diff}. "
                          "Use another --out, or delete that run to train it again.")
-    return info.get("step") == iters
+    return info.get("step") == wanted.iters
 
 
 def _design_diff(saved_policy: dict, preset) -> dict:
     """The fields of the preset's config that training flags cannot change (attention design, heads, CoT targets,
     ...) and that differ in a saved run's config: a run of another design under the same preset name."""
-    from cotpc.policies.base import config_from_dict, config_to_dict
-    from cotpc.training.train import TrainConfig
-
     flags = {f.name for f in dataclasses.fields(TrainConfig)} | {"name"}
     saved, now = config_to_dict(config_from_dict(saved_policy)), config_to_dict(preset)
     return {f"policy.{k}": (saved.get(k), v) for k, v in now.items() if k not in flags and saved.get(k) != v}
@@ -155,7 +162,7 @@ def plot_learning_curves(runs: Path, names: list[str], path: Path) -> Path:
     of MSE and centre/offset heads are not on one scale): in training (all window positions, random CoT mask)
     and on validation windows at the last position, as at inference (``val/last_bc``). Runs logged before the
     last-position metrics existed fall back to their all-position ``val/bc``, labelled so."""
-    import matplotlib
+    import matplotlib  # heavy (about 1 s): imported only when a figure is drawn
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -189,7 +196,7 @@ def plot_learning_curves(runs: Path, names: list[str], path: Path) -> Path:
 def _scalar(logdir: Path, tag: str) -> tuple[list[int], list[float]]:
     if not logdir.exists():
         return [], []
-    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # heavy: only for reports
 
     acc = EventAccumulator(str(logdir))
     acc.Reload()
@@ -221,21 +228,22 @@ class GridResults:
     """``<policy>/seed<k>`` -> the training seconds measured when the run was trained (None: not measured)."""
 
 
-def train_and_evaluate(out: Path, data: Path, runs: list[tuple[str, int]], iters: int, extra_train_args: dict,
+def train_and_evaluate(out: Path, template: TrainConfig, runs: list[tuple[str, int]],
                        evaluations: dict[str, Evaluation], jobs: int = 1, device: str = "cpu", step: str = "",
                        after_run: Optional[Callable[[str, int, Path, dict[str, dict]], None]] = None) -> GridResults:
-    """The grid of a study: train each (policy, seed) of ``runs`` into ``out/runs/<policy>/seed<k>/`` on ``data``
-    unless it is finished there (in ``jobs`` processes at once when jobs > 1; else one by one, resuming), then make
+    """The grid of a study: train each (policy, seed) of ``runs`` into ``out/runs/<policy>/seed<k>/`` with the
+    settings of ``template`` (a TrainConfig with the study's data and schedule; :func:`run_config`) unless it is
+    finished there (in ``jobs`` processes at once when jobs > 1; else one by one, resuming), then make
     every evaluation of ``evaluations`` that is not cached. ``after_run(policy, seed, run_dir, summaries by key)``
     is called after each run's evaluations (a study prints its line, or evaluates its checkpoints, there).
     ``step`` prefixes the training lines printed by a one-by-one run."""
     if jobs > 1:
-        train_parallel(out, data, runs, iters, extra_train_args, jobs)
+        train_parallel(out, template, runs, jobs)
     summaries: dict[str, dict[str, list[dict]]] = {}
     seconds: dict[str, Optional[float]] = {}
     for name, seed in runs:
         run_dir = out / "runs" / name / f"seed{seed}"
-        seconds[f"{name}/seed{seed}"] = train_run(run_dir, data, name, seed, iters, extra_train_args, step=step)
+        seconds[f"{name}/seed{seed}"] = train_run(run_config(template, run_dir, name, seed), step=step)
         load = policy_loader(run_dir, device)
         per_key = summaries.setdefault(name, {key: [] for key in evaluations})
         this_run = {}

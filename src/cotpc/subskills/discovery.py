@@ -54,7 +54,7 @@ _WIDTH = 16  # end indices per block: narrower wastes less of the rectangular bl
 COSTS = ("mean-cosine", "sum-cosine")
 
 
-def _check_actions(actions, where: str = "actions") -> np.ndarray:
+def check_actions(actions, where: str = "actions") -> np.ndarray:
     a = np.asarray(actions)
     if a.ndim != 2:
         raise ValueError(f"{where} must be a 2-D (N, p) array, got shape {a.shape}")
@@ -80,7 +80,7 @@ def _check_params(beta: float, min_size: int, cost: str = COSTS[0]) -> tuple[flo
     return beta, int(min_size)
 
 
-def _unit(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def unit_actions(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Unit vectors (zero actions -> 0), norms, and the non-zero mask, following the zero convention."""
     norms = np.linalg.norm(a, axis=1)
     nonzero = norms > ZERO_ACTION_RTOL * norms.max()
@@ -89,9 +89,9 @@ def _unit(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return u, norms, nonzero
 
 
-def _segment_cost(u: np.ndarray, v: np.ndarray, norms: np.ndarray, nonzero: np.ndarray) -> float:
+def segment_cost(u: np.ndarray, v: np.ndarray, norms: np.ndarray, nonzero: np.ndarray) -> float:
     """C of one segment summed directly (the reference the fast path is checked against); ``u``, ``norms`` and
-    ``nonzero`` come from :func:`_unit` over the whole trajectory, so "zero action" is decided trajectory-wide."""
+    ``nonzero`` come from :func:`unit_actions` over the whole trajectory, so "zero action" is decided trajectory-wide."""
     n = len(v)
     s = v.sum(axis=0)
     s_norm = float(np.linalg.norm(s))
@@ -106,14 +106,14 @@ def objective(actions, ends, beta: float, cost: str = "mean-cosine") -> float:
 
     Computed segment by segment with direct sums (independent of the DP's prefix-sum expansion).
     """
-    a = _check_actions(actions)
+    a = check_actions(actions)
     beta, _ = _check_params(beta, 1, cost)
     ends = check_ends(ends, len(a))
-    u, norms, nonzero = _unit(a)
+    u, norms, nonzero = unit_actions(a)
     total, start = 0.0, 0
     for e in ends:
         sl = slice(start, int(e) + 1)
-        c = _segment_cost(u[sl], a[sl], norms[sl], nonzero[sl])
+        c = segment_cost(u[sl], a[sl], norms[sl], nonzero[sl])
         total += (c if cost == "mean-cosine" else c * (int(e) + 1 - start)) + beta
         start = int(e) + 1
     return total
@@ -137,7 +137,7 @@ def discover_batch(
     (padding sits after a trajectory's end, so it cannot change that trajectory's DP values).
     """
     beta, min_size = _check_params(beta, min_size, cost)
-    arrays = [_check_actions(a, f"actions[{k}]") for k, a in enumerate(actions_list)]
+    arrays = [check_actions(a, f"actions[{k}]") for k, a in enumerate(actions_list)]
     for k, a in enumerate(arrays):
         if len(a) < min_size:
             raise ValueError(f"actions[{k}] has N = {len(a)} < min_size = {min_size} actions")

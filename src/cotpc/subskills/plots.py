@@ -12,13 +12,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from cotpc.subskills.discovery import _unit  # noqa: E402
+from cotpc.subskills.discovery import unit_actions  # noqa: E402
 from cotpc.data.targets import key_state_indices  # noqa: E402
 
 
 def cosine_similarity_map(actions: np.ndarray) -> np.ndarray:
     """(N, N) pairwise cosine similarity of the actions; a zero action has similarity 0 to everything."""
-    u, _, _ = _unit(np.asarray(actions, dtype=np.float64))
+    u, _, _ = unit_actions(np.asarray(actions, dtype=np.float64))
     return u @ u.T
 
 

@@ -27,9 +27,11 @@ import numpy as np
 import torch
 import torch.distributed as dist
 import torch.nn as nn
+import tyro
+from tqdm import tqdm
 
-from cotpc.data.dataset import Stats, WindowDataset, split_episodes
-from cotpc.data.trajectories import load_trajectories
+from cotpc.data.dataset import MissingSubskillsError, Stats, WindowDataset, split_episodes
+from cotpc.data.trajectories import TrajectoryFormatError, load_trajectories
 from cotpc.envs.spec import task_defaults
 from cotpc.policies.config import PRESETS, get_preset
 from cotpc.policies.kmeans import kmeans
@@ -369,7 +371,7 @@ def _train(config: TrainConfig) -> Path:
 
     writer = None
     if main_proc:
-        from torch.utils.tensorboard import SummaryWriter
+        from torch.utils.tensorboard import SummaryWriter  # imports tensorboard (heavy): the logging process only
 
         run_dir.mkdir(parents=True, exist_ok=True)
         writer = SummaryWriter(str(run_dir / "tb"), purge_step=step if step else None)
@@ -397,8 +399,6 @@ def _train(config: TrainConfig) -> Path:
     end = config.iters if config.stop_after is None else min(config.iters, config.stop_after)
     bar = None
     if main_proc and config.progress:
-        from tqdm import tqdm
-
         bar = tqdm(total=config.iters, initial=step, desc=f"train {cfg.name}", dynamic_ncols=True, file=sys.stderr)
     t0, start_step, last_val = time.perf_counter(), step, None
     loss_v = float("nan")
@@ -467,12 +467,7 @@ def _train(config: TrainConfig) -> Path:
 
 
 def main(argv: list[str] | None = None, prog: str = "cotpc train") -> None:
-    import tyro
-
     config = tyro.cli(TrainConfig, args=sys.argv[1:] if argv is None else argv, prog=prog)
-    from cotpc.data.dataset import MissingSubskillsError
-    from cotpc.data.trajectories import TrajectoryFormatError
-
     try:
         train(config)
     except (MissingSubskillsError, TrajectoryFormatError, CheckpointError, FileExistsError) as e:
