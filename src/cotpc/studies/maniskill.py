@@ -219,7 +219,7 @@ def plot_val_curves(curves: dict, path: Path) -> Path:
     import matplotlib  # heavy (about 1 s): imported only when a figure is drawn
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # after use("Agg"): no display needed
 
     fig, ax = plt.subplots(figsize=(5, 3.2))
     colours: dict = {}

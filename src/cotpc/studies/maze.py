@@ -320,7 +320,7 @@ def _plots(results: dict, out: Path, names: list[str]) -> list[Path]:
     import matplotlib  # heavy (about 1 s): imported only when a figure is drawn
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # after use("Agg"): no display needed
 
     paths = []
     # Success bars
@@ -352,7 +352,7 @@ def plot_val_success(curves: dict, names: list[str], path: Path) -> Path:
     import matplotlib  # heavy (about 1 s): imported only when a figure is drawn
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # after use("Agg"): no display needed
 
     keys = [k for k in CURVE_KEYS if all(k in c for c in curves.values())]
     fig, axes = plt.subplots(1, len(keys), figsize=(4.5 * len(keys), 3.4), sharey=True, squeeze=False)

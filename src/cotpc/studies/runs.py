@@ -165,7 +165,7 @@ def plot_learning_curves(runs: Path, names: list[str], path: Path) -> Path:
     import matplotlib  # heavy (about 1 s): imported only when a figure is drawn
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # after use("Agg"): no display needed
 
     cols = min(4, len(names))
     rows = (len(names) + cols - 1) // cols
