@@ -190,7 +190,7 @@ def test_reproduce_maniskill_end_to_end_and_resumes(stack_demos, tmp_path):
     shutil.copytree(stack_demos, demos)  # the fixture's 2 + 1 demos: generation finds them complete
     settings = ManiSkillStudySettings(
         out=tmp_path, envs=("StackCube-v1",), policies=("cotpc",), seeds=1, num=2, test=1, val=1,
-        seen_episodes=1, curve_episodes=1, paper_protocol=True, horizon=12, procs=1, backend="cpu",
+        seen_episodes=1, curve_episodes=1, curve_every=2, paper_protocol=True, horizon=12, procs=1, backend="cpu",
         train=TrainConfig(data=Path("replaced by each task's demos"), iters=2, batch_size=8, d_model=32, n_layers=1,
                           n_heads=2, n_centres=8, keep_checkpoints=True),
     )
@@ -207,10 +207,10 @@ def test_reproduce_maniskill_end_to_end_and_resumes(stack_demos, tmp_path):
     assert json.loads((tmp_path / "results.json").read_text())["meta"]["paper"]["StackCube-v1"]["results"]["cotpc"] == 86.0
     report = (tmp_path / "report.md").read_text()
     assert "## StackCube-v1" in report and "| cotpc |" in report and "is_cubeA_grasped" in report and (tmp_path / "learning_curves_StackCube-v1.png").exists()
-    # --keep-checkpoints: every kept checkpoint scored on the validation seeds (the schedule curve), and the
-    # paper's protocol on the test seeds, labelled as such.
+    # --keep-checkpoints: the kept checkpoints (--curve-every 2: every second, counted back from the last) scored
+    # on the validation seeds (the schedule curve), and the paper's protocol on the test seeds, labelled as such.
     curve = r["val_curve"]["seed0"]
-    assert curve["iteration"] == [1, 2] and curve["samples"] == [8, 16] and len(curve["success_once"]) == 2
+    assert curve["iteration"] == [2] and curve["samples"] == [16] and len(curve["success_once"]) == 1  # every 2nd
     ckpt_eval = json.loads((tmp_path / "StackCube-v1/runs/cotpc/seed0/checkpoints/step_0000002/eval_val.json").read_text())
     assert ckpt_eval["summary"]["episodes"] == 1 and ckpt_eval["summary"]["split"] == "val"
     assert 1_000_000 <= ckpt_eval["episodes"][0]["seed"] < 2_000_000  # a validation seed, never a test one

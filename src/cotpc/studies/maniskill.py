@@ -56,6 +56,7 @@ class ManiSkillStudySettings:
     val: int = 100  # validation demos: their seeds score the checkpoint curve
     seen_episodes: int | None = 100  # None: every training seed
     curve_episodes: int | None = 50  # validation seeds per kept checkpoint; None: all
+    curve_every: int = 1  # score every k-th kept checkpoint (the last one always)
     paper_protocol: bool = False  # also evaluate the last PROTOCOL_CHECKPOINTS kept checkpoints on the test seeds
     jobs: int = 1
     control_mode: str = "pd_joint_delta_pos"
@@ -104,7 +105,7 @@ def run(s: ManiSkillStudySettings) -> dict:
         def print_run(name: str, seed: int, run_dir: Path, summaries: dict) -> None:
             if keep and s.val:
                 curves[env_id][f"{name}/seed{seed}"] = checkpoint_curve(run_dir, demos, "val", s.curve_episodes,
-                                                                        horizon, s)
+                                                                        horizon, s, every=s.curve_every)
             if keep and s.paper_protocol:
                 protocol[env_id].setdefault(name, {})[f"seed{seed}"] = checkpoint_curve(
                     run_dir, demos, "unseen", None, horizon, s, last=PROTOCOL_CHECKPOINTS)
@@ -194,12 +195,14 @@ def _cached_eval(run_dir: Path, split: str, horizon: int, episodes: int | None) 
 
 
 def checkpoint_curve(run_dir: Path, demos: Path, split: str, episodes: int | None, horizon: int,
-                     s: ManiSkillStudySettings, last: int | None = None) -> dict:
+                     s: ManiSkillStudySettings, last: int | None = None, every: int = 1) -> dict:
     """success_once and success_at_end (%) on ``split`` of each checkpoint kept under ``run_dir/checkpoints``
-    (the ``last`` ones when given), with the iteration and the training samples it had seen. Each checkpoint's
-    evaluation is saved beside its weights and reused while fresh, so an interrupted study picks up here too."""
+    (the ``last`` ones when given; every ``every``-th, counted back from the final one), with the iteration and
+    the training samples it had seen. Each checkpoint's evaluation is saved beside its weights and reused while
+    fresh, so an interrupted study picks up here too."""
     kept = sorted((run_dir / "checkpoints").glob("step_*"))
     kept = kept[-last:] if last else kept
+    kept = kept[::-1][::max(every, 1)][::-1]
     batch = json.loads((run_dir / "config.json").read_text())["train"]["batch_size"]
     curve: dict = {"iteration": [], "samples": [], "success_once": [], "success_at_end": []}
     for ckpt in kept:
@@ -364,6 +367,9 @@ class ManiSkillReproduce:
     of validation success against training samples)."""
     curve_episodes: Optional[int] = 50
     """Validation seeds per kept checkpoint (0 = all of --val)."""
+    curve_every: int = 1
+    """Score every k-th kept checkpoint on the validation seeds (counted back from the final one): 2 halves the
+    evaluation time of the curve."""
     paper_protocol: bool = False
     """With --keep-checkpoints, also evaluate the last 20 kept checkpoints on the test seeds and report the best
     (the paper's protocol, labelled: it selects on the test seeds)."""
@@ -388,7 +394,8 @@ def reproduce(cfg: ManiSkillReproduce) -> dict:
     results = run(ManiSkillStudySettings(
         out=cfg.out, envs=tuple(cfg.envs), policies=tuple(cfg.policies), seeds=cfg.seeds,
         num=cfg.num, test=cfg.test, val=cfg.val, seen_episodes=cfg.seen_episodes or None,
-        curve_episodes=cfg.curve_episodes or None, paper_protocol=cfg.paper_protocol, jobs=cfg.jobs,
+        curve_episodes=cfg.curve_episodes or None, curve_every=cfg.curve_every, paper_protocol=cfg.paper_protocol,
+        jobs=cfg.jobs,
         control_mode=cfg.control_mode, horizon=cfg.horizon, procs=cfg.procs, backend=cfg.backend,
         train=TrainConfig(data=cfg.out / "<task>" / "demos" / "train.h5", iters=cfg.iters, device=cfg.device,
                           batch_size=cfg.batch_size, n_centres=cfg.n_centres, keep_checkpoints=cfg.keep_checkpoints),
