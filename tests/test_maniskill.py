@@ -211,6 +211,7 @@ def test_reproduce_maniskill_end_to_end_and_resumes(stack_demos, tmp_path):
     # on the validation seeds (the schedule curve), and the paper's protocol on the test seeds, labelled as such.
     curve = r["val_curve"]["seed0"]
     assert curve["iteration"] == [2] and curve["samples"] == [16] and len(curve["success_once"]) == 1  # every 2nd
+    assert 0 <= curve["max_normalized_reward"][0] <= 1 and "is_cubeA_grasped" in curve["stages_once"][0]
     ckpt_eval = json.loads((tmp_path / "StackCube-v1/runs/cotpc/seed0/checkpoints/step_0000002/eval_val.json").read_text())
     assert ckpt_eval["summary"]["episodes"] == 1 and ckpt_eval["summary"]["split"] == "val"
     assert 1_000_000 <= ckpt_eval["episodes"][0]["seed"] < 2_000_000  # a validation seed, never a test one

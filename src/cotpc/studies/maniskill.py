@@ -204,7 +204,8 @@ def checkpoint_curve(run_dir: Path, demos: Path, split: str, episodes: int | Non
     kept = kept[-last:] if last else kept
     kept = kept[::-1][::max(every, 1)][::-1]
     batch = json.loads((run_dir / "config.json").read_text())["train"]["batch_size"]
-    curve: dict = {"iteration": [], "samples": [], "success_once": [], "success_at_end": []}
+    curve: dict = {"iteration": [], "samples": [], "success_once": [], "success_at_end": [],
+                   "max_normalized_reward": [], "stages_once": []}
     for ckpt in kept:
         summary = _cached_eval(ckpt, split, horizon, episodes)
         if summary is None:
@@ -214,6 +215,9 @@ def checkpoint_curve(run_dir: Path, demos: Path, split: str, episodes: int | Non
         curve["samples"].append(step * batch)
         curve["success_once"].append(100 * summary["success_once"])
         curve["success_at_end"].append(100 * summary["success_at_end"])
+        # progress short of success: it moves before success does on a short schedule
+        curve["max_normalized_reward"].append(summary["mean_max_normalized_reward"])
+        curve["stages_once"].append({k: 100 * v for k, v in summary["stages_once"].items()})
     return curve
 
 
@@ -320,6 +324,10 @@ def write_report(results: dict, out: Path) -> Path:
             ]
             for run, c in curves.items():
                 lines.append(f"| {run} | " + " | ".join(f"{v:.0f}" for v in c["success_once"]) + " |")
+            for run, c in curves.items():  # progress short of success
+                if c.get("max_normalized_reward"):
+                    lines.append(f"| {run}, max normalised reward | "
+                                 + " | ".join(f"{v:.2f}" for v in c["max_normalized_reward"]) + " |")
             figure = plot_val_curves(curves, out / f"val_success_{env_id}.png")
             lines += ["", f"![validation success {env_id}]({figure.name})"]
         protocol = {name: r["paper_protocol"] for name, r in by_policy.items() if "paper_protocol" in r}
