@@ -203,7 +203,8 @@ def checkpoint_curve(run_dir: Path, demos: Path, split: str, episodes: int | Non
     kept = sorted((run_dir / "checkpoints").glob("step_*"))
     kept = kept[-last:] if last else kept
     kept = kept[::-1][::max(every, 1)][::-1]
-    batch = json.loads((run_dir / "config.json").read_text())["train"]["batch_size"]
+    info = json.loads((run_dir / "config.json").read_text())
+    batch = info["policy"]["batch_size"]  # the effective one (the train flag is None for the preset's)
     curve: dict = {"iteration": [], "samples": [], "success_once": [], "success_at_end": [],
                    "max_normalized_reward": [], "stages_once": []}
     for ckpt in kept:
