@@ -17,6 +17,7 @@ import numpy as np
 
 from cotpc.data.trajectories import load_trajectories
 from cotpc.envs.kitchen import ENV_ID, HORIZON, NUM_REQUESTED, FrankaKitchenOrderedEnv, check_seed, validate_tasks
+from cotpc.evaluation.replay import ReplayPolicy  # noqa: F401  (re-exported for the task's replay checks)
 from cotpc.evaluation.request import load_for_eval
 from cotpc.evaluation.stats import wilson_interval
 
@@ -137,20 +138,3 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
     return s
 
 
-class ReplayPolicy:
-    """Plays back recorded action sequences (one per environment); zeros after the end."""
-
-    def __init__(self, action_sequences: list[np.ndarray]):
-        self.sequences = action_sequences
-        self.t = 0
-
-    def reset(self) -> None:
-        self.t = 0
-
-    def select_action(self, obs: np.ndarray) -> np.ndarray:
-        out = np.zeros((len(self.sequences), 9))
-        for i, seq in enumerate(self.sequences):
-            if self.t < len(seq):
-                out[i] = seq[self.t]
-        self.t += 1
-        return out

@@ -18,6 +18,7 @@ from cotpc.data.trajectories import load_trajectories
 from cotpc.envs.moving_maze import (
     ENV_ID, HORIZON, PAPER_MIN_ACTION, RULES, MazeConfig, MazeRules, MovingMazeBatch, check_seed, render_frame,
 )
+from cotpc.evaluation.replay import ReplayPolicy  # noqa: F401  (re-exported for the task's replay checks)
 from cotpc.evaluation.request import load_for_eval
 from cotpc.evaluation.stats import wilson_interval
 
@@ -204,25 +205,6 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
     for v in s.get("videos", []):
         print(f"  video: {v}")
     return s
-
-
-class ReplayPolicy:
-    """Plays back recorded action sequences (one per environment); zeros after the end."""
-
-    def __init__(self, action_sequences: list[np.ndarray]):
-        self.sequences = action_sequences
-        self.t = 0
-
-    def reset(self) -> None:
-        self.t = 0
-
-    def select_action(self, obs: np.ndarray) -> np.ndarray:
-        out = np.zeros((len(self.sequences), 2))
-        for i, seq in enumerate(self.sequences):
-            if self.t < len(seq):
-                out[i] = seq[self.t]
-        self.t += 1
-        return out
 
 
 class RandomPolicy:

@@ -13,11 +13,9 @@ from __future__ import annotations
 
 import functools
 import json
-import platform
 import sys
 import time
 from dataclasses import asdict, dataclass
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Optional
 
@@ -32,7 +30,8 @@ from cotpc.evaluation.kitchen import evaluate, evaluate_run, load_split_configs
 from cotpc.policies import get_preset
 from cotpc.subskills.labeling import label_file
 from cotpc.training.train import TrainConfig, resolve_device
-from cotpc.studies.runs import Evaluation, cpu_count, fresh_eval, plot_learning_curves, stats, train_and_evaluate
+from cotpc.studies.runs import (Evaluation, cpu_count, fresh_eval, plot_learning_curves, provenance, stats,
+                                train_and_evaluate)
 from cotpc.studies.suites import Suite, register_suite
 
 SPLITS = ("seen", "val", "unseen")
@@ -111,15 +110,11 @@ def reproduce(cfg: KitchenReproduce) -> dict:
         for name, per_split in grid.summaries.items()
     }
     results["meta"] = {
-        "command": " ".join(["cotpc"] + sys.argv[1:]) if sys.argv and "cotpc" in sys.argv[0] else None,
+        **provenance("mujoco", "gymnasium-robotics"),
         "settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(cfg).items()},
         "n_centres": cfg.n_centres or defaults.n_centres,
         "context": defaults.context,
         "subskills": subskills,
-        "versions": {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
-                     "mujoco": _version("mujoco"), "gymnasium_robotics": _version("gymnasium-robotics")},
-        "hardware": {"machine": platform.machine(), "processor": platform.processor(), "cpus": cpu_count(),
-                     "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None},
         "wall_seconds": round(time.perf_counter() - t_start, 1),  # this invocation (finished runs are reused)
         "train_seconds_total": round(sum(t for t in grid.train_seconds.values() if t), 1),
         "train_seconds": grid.train_seconds,
@@ -181,13 +176,6 @@ def cached_eval(run_dir: Path, split: str, demos: Path) -> dict | None:
     except (KeyError, TypeError):
         return None
     return saved["summary"] if same else None
-
-
-def _version(dist: str) -> str | None:
-    try:
-        return version(dist)
-    except PackageNotFoundError:
-        return None
 
 
 def write_report(results: dict, out: Path) -> Path:

@@ -11,11 +11,9 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
-import platform
 import sys
 import time
 from dataclasses import dataclass
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -26,7 +24,7 @@ from cotpc.demos.maniskill import ManiSkillDemos, make_demos, write_splits
 from cotpc.envs.maniskill import HORIZONS, import_maniskill, is_maniskill_env
 from cotpc.envs.spec import GENERIC, env_spec, task_defaults
 from cotpc.evaluation.maniskill import evaluate, evaluate_run, policy_loader
-from cotpc.studies.runs import (PROTOCOL_CHECKPOINTS, Evaluation, cpu_count, fresh_eval, jsonable,
+from cotpc.studies.runs import (PROTOCOL_CHECKPOINTS, Evaluation, cpu_count, fresh_eval, jsonable, provenance,
                                 plot_learning_curves, stats, train_and_evaluate)
 from cotpc.subskills.labeling import label_file
 from cotpc.training.train import TrainConfig
@@ -132,15 +130,11 @@ def run(s: ManiSkillStudySettings) -> dict:
                 "runs": by_seed,
             }
     results["meta"] = {
-        "command": " ".join(["cotpc"] + sys.argv[1:]) if sys.argv and "cotpc" in sys.argv[0] else None,
+        **provenance("mani-skill", "sapien"),
         "settings": jsonable(s),
         "demos": demo_counts,
         "horizons": {e: s.horizon or HORIZONS[e] for e in s.envs},
         "subskills": subskills,
-        "versions": {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
-                     "mani_skill": _version("mani_skill"), "sapien": _version("sapien")},
-        "hardware": {"machine": platform.machine(), "processor": platform.processor(), "cpus": cpu_count(),
-                     "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None},
         "wall_seconds": round(time.perf_counter() - t_start, 1),  # this invocation (finished steps are reused)
         "train_seconds": timings,
         "success_unit": "percent of episodes; mean/std/best/runs = success_once",
@@ -161,13 +155,6 @@ def _aggregate(summaries: list[dict]) -> dict:
                         for k in summaries[0]["stages_once"]},
         "max_normalized_reward": float(np.mean([x["mean_max_normalized_reward"] for x in summaries])),
     }
-
-
-def _version(module: str) -> str | None:
-    try:
-        return version(module.replace("_", "-"))
-    except PackageNotFoundError:
-        return None
 
 
 def _evaluate(run_dir: Path, load, split: str, demos: Path, s: ManiSkillStudySettings, episodes: int | None) -> dict:

@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
-import platform
 import sys
 import time
 from dataclasses import dataclass
@@ -25,8 +24,8 @@ from cotpc.envs.moving_maze import ENV_ID, HORIZON, PAPER_MIN_ACTION, RULES, SPE
 from cotpc.evaluation.maze import eval_name, evaluate, evaluate_run, load_split_configs
 from cotpc.studies.suites import Suite, register_suite
 from cotpc.studies.runs import (
-    PROTOCOL_CHECKPOINTS, Evaluation, cpu_count, fresh_eval, jsonable, plot_learning_curves, policy_loader, stats,
-    train_and_evaluate,
+    PROTOCOL_CHECKPOINTS, Evaluation, cpu_count, fresh_eval, jsonable, plot_learning_curves, policy_loader, provenance,
+    stats, train_and_evaluate,
 )
 from cotpc.subskills.labeling import label_file
 from cotpc.training.train import TrainConfig, resolve_device
@@ -136,12 +135,10 @@ def run(s: ReproduceSettings) -> dict:
                 "runs": protocol[name],
             }
     results["meta"] = {
-        "command": " ".join(["cotpc"] + sys.argv[1:]) if sys.argv and "cotpc" in sys.argv[0] else None,
+        **provenance(),
         "settings": jsonable(dataclasses.replace(s, train=template)),
         "ablations": [a for a in s.ablations if a not in s.policies],
         "subskills": seg,
-        "versions": {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__},
-        "hardware": {"machine": platform.machine(), "processor": platform.processor(), "cpus": cpu_count()},
         "wall_seconds": round(time.perf_counter() - t_start, 1),  # this invocation (finished runs are reused)
         "train_seconds_total": round(sum(t for t in timings.values() if t), 1),
         "train_seconds": timings,

@@ -11,14 +11,17 @@ import functools
 import json
 import multiprocessing as mp
 import os
+import platform
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from typing import Any, Callable, Optional
 
 import numpy as np
+import torch
 
 from cotpc.policies import config_from_dict, config_to_dict, get_preset, load_policy
 from cotpc.training.train import TrainConfig, train
@@ -31,6 +34,24 @@ PROTOCOL_CHECKPOINTS = 20
 def stats(rates: list[float]) -> dict:
     a = np.array(rates, dtype=float)
     return {"mean": float(a.mean()), "std": float(a.std(ddof=0)), "best": float(a.max()), "runs": [float(r) for r in a]}
+
+
+def provenance(*packages: str) -> dict:
+    """What a study's results.json records about where it ran: the command, versions (python, torch, numpy and
+    ``packages``, by distribution name) and hardware."""
+    def version_of(dist: str) -> str | None:
+        try:
+            return version(dist)
+        except PackageNotFoundError:
+            return None
+
+    return {
+        "command": " ".join(["cotpc"] + sys.argv[1:]) if sys.argv and "cotpc" in sys.argv[0] else None,
+        "versions": {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
+                     **{p.replace("-", "_"): version_of(p) for p in packages}},
+        "hardware": {"machine": platform.machine(), "processor": platform.processor(), "cpus": cpu_count(),
+                     "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None},
+    }
 
 
 def jsonable(settings) -> dict:
