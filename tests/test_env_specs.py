@@ -3,7 +3,8 @@
 import pytest
 
 from cotpc.envs import MAZE_ENV_ID, env_spec, task_defaults
-from cotpc.envs import maniskill, moving_maze
+from cotpc.envs.maniskill import env as maniskill
+from cotpc.envs.maze import env as moving_maze
 from cotpc.envs.spec import GENERIC, SeedRanges
 
 
@@ -40,7 +41,7 @@ def test_one_seed_range_mechanism_for_every_environment():
 
 
 def test_suites_are_found_by_name_and_env_id():
-    from cotpc.envs.moving_maze import ENV_ID
+    from cotpc.envs.maze.env import ENV_ID
     from cotpc.studies.suites import suite_for_env, suites
 
     assert {"maze", "maniskill"} <= set(suites())

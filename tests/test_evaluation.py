@@ -7,8 +7,8 @@ import pytest
 
 from cotpc.cli.main import main as cotpc_main
 from cotpc.data import load_trajectories
-from cotpc.envs.moving_maze import RULES
-from cotpc.evaluation.maze import (
+from cotpc.envs.maze.env import RULES
+from cotpc.envs.maze.rollout import (
     RandomPolicy,
     ReplayPolicy,
     evaluate,

@@ -10,8 +10,8 @@ pytest.importorskip("gymnasium_robotics")
 pytest.importorskip("mujoco")
 
 from cotpc.data.trajectories import load_trajectories  # noqa: E402
-from cotpc.demos import kitchen as demos  # noqa: E402
-from cotpc.envs import kitchen as K  # noqa: E402
+from cotpc.envs.kitchen import demos  # noqa: E402
+from cotpc.envs.kitchen import env as K  # noqa: E402
 
 TASKS = ("microwave", "kettle", "light switch", "slide cabinet")
 
@@ -232,7 +232,7 @@ def test_write_splits_and_replay(tmp_path):
             assert infos[-1]["success"] and len(infos) == ep.num_steps
             np.testing.assert_allclose(obs, ep.obs, atol=1e-4)
     # evaluation: replaying the demos of a split scores 100% and 4 sub-tasks; doing nothing scores 0
-    from cotpc.evaluation import kitchen as ev
+    from cotpc.envs.kitchen import rollout as ev
 
     for split, name in (("seen", "train"), ("val", "val"), ("unseen", "test")):
         data = load_trajectories(tmp_path / f"{name}.h5")

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from cotpc.cli.main import main as cotpc_main
-from cotpc.envs.maniskill import SEEDS, SeedRanges, is_maniskill_env
+from cotpc.envs.maniskill.env import SEEDS, SeedRanges, is_maniskill_env
 
 SKIP_REASON = "ManiSkill3 is not installed (pip install -e '.[maniskill]'; needs numpy<2)"
 
@@ -45,7 +45,7 @@ def test_task_ids():
 
 
 def test_maze_commands_never_import_maniskill():
-    code = ("import sys; from cotpc.cli import demos, eval; import cotpc.envs, cotpc.evaluation.maze; "
+    code = ("import sys; from cotpc.cli import demos, eval; import cotpc.envs, cotpc.envs.maze.rollout; "
             "print('mani_skill' in sys.modules, 'sapien' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.split() == ["False", "False"]
@@ -56,7 +56,7 @@ def test_maze_commands_never_import_maniskill():
 
 def test_headless_workaround_only_without_a_device_and_physics_is_deterministic():
     needs_maniskill()
-    from cotpc.envs.maniskill import ensure_headless, flat_obs, make_env
+    from cotpc.envs.maniskill.env import ensure_headless, flat_obs, make_env
 
     patched = ensure_headless()
     import sapien
@@ -112,7 +112,7 @@ def test_demos_follow_the_trajectory_format_with_disjoint_seeds(stack_demos):
 
 
 def test_demos_replay_to_success_through_the_eval_path(stack_demos):
-    from cotpc.evaluation.maniskill import evaluate, replay_factory
+    from cotpc.envs.maniskill.rollout import evaluate, replay_factory
 
     result = evaluate(replay_factory(stack_demos / "train.h5"), stack_demos, "seen", progress=False, backend="cpu")
     s = result.summary()

@@ -9,8 +9,8 @@ import pytest
 import cotpc.envs  # noqa: F401
 from cotpc.cli.main import main as cotpc_main
 from cotpc.data import load_trajectories
-from cotpc.demos.maze import MAX_LEG_STEPS, STEP_MAGNITUDE, _StaticMaze, plan_demo
-from cotpc.envs.moving_maze import HORIZON, MOVING_RANGES, region_of, split_of_seed
+from cotpc.envs.maze.demos import MAX_LEG_STEPS, STEP_MAGNITUDE, _StaticMaze, plan_demo
+from cotpc.envs.maze.env import HORIZON, MOVING_RANGES, region_of, split_of_seed
 
 
 @pytest.fixture(scope="module")
@@ -97,8 +97,8 @@ def test_generation_is_deterministic_and_independent_of_workers():
     a = plan_demo(7)
     b = plan_demo(7)
     np.testing.assert_array_equal(a[1], b[1])
-    from cotpc.demos.maze import generate
-    from cotpc.envs.moving_maze import seeds_for
+    from cotpc.envs.maze.demos import generate
+    from cotpc.envs.maze.env import seeds_for
 
     seeds = seeds_for("train", 4)
     one = generate(seeds, "train", workers=1)
@@ -108,8 +108,8 @@ def test_generation_is_deterministic_and_independent_of_workers():
 
 
 def test_generate_refuses_seeds_of_another_split():
-    from cotpc.demos.maze import generate
-    from cotpc.envs.moving_maze import seeds_for
+    from cotpc.envs.maze.demos import generate
+    from cotpc.envs.maze.env import seeds_for
 
     with pytest.raises(ValueError, match="test split"):
         generate(seeds_for("test", 2), "train")
@@ -125,7 +125,7 @@ def test_planner_region_matches_the_environment():
 
 
 def test_demos_for_the_moved_landing_rule(tmp_path):
-    from cotpc.evaluation.maze import ReplayPolicy, evaluate, load_split_configs, rollout
+    from cotpc.envs.maze.rollout import ReplayPolicy, evaluate, load_split_configs, rollout
 
     cotpc_main(["demos", "maze", "--out", str(tmp_path), "--train", "12", "--test", "0", "--val", "0",
                 "--landing", "moved"])

@@ -6,7 +6,7 @@ import pytest
 
 import cotpc.envs  # noqa: F401  (registers the env)
 from cotpc.envs import MAZE_ENV_ID
-from cotpc.envs.moving_maze import (
+from cotpc.envs.maze.env import (
     HORIZON,
     MOVING_RANGES,
     SEED_RANGES,

@@ -1,8 +1,9 @@
 """What the rest of the package needs to know about an environment, declared once by the environment's own
 module and found by its id.
 
-Each environment module (Moving Maze in ``moving_maze.py``, the ManiSkill3 tasks in ``maniskill.py``) declares an
-:class:`EnvSpec` and registers it here; ``cli/``, ``policies/``, ``subskills/`` and ``training/`` ask
+Each environment's ``env.py`` (``envs/maze/env.py``: Moving Maze; ``envs/maniskill/env.py``: the ManiSkill3 tasks;
+``envs/kitchen/env.py``: the ordered Franka Kitchen) declares an :class:`EnvSpec` and registers it here (and with
+gymnasium, when it has an entry point); ``cli/``, ``policies/``, ``subskills/`` and ``training/`` ask
 :func:`task_defaults` or :func:`env_spec` instead of testing environment ids.
 """
 
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import gymnasium as gym
 import numpy as np
 
 
@@ -83,14 +85,20 @@ class EnvSpec:
     seeds: SeedRanges = DEFAULT_SEEDS
     paper_success: dict[str, float] = field(default_factory=dict)
     """The paper's success rates (%) by policy, for reports."""
+    entry_point: str | None = None
+    """``module:Class`` registered with gymnasium under ``env_id`` (None: the id is someone else's, as ManiSkill3's
+    are). A string, so registering imports nothing heavy (mujoco is imported when a kitchen env is made)."""
 
 
 SPECS: dict[str, EnvSpec] = {}
 
 
 def register(spec: EnvSpec) -> EnvSpec:
-    """Make ``spec`` findable by its id (each environment module registers its own on import)."""
+    """Make ``spec`` findable by its id, and ``gym.make``-able if it has an entry point (each environment module
+    registers its own on import)."""
     SPECS[spec.env_id] = spec
+    if spec.entry_point and spec.env_id not in gym.registry:
+        gym.register(id=spec.env_id, entry_point=spec.entry_point, max_episode_steps=spec.horizon)
     return spec
 
 

@@ -1,8 +1,8 @@
 """The ``kitchen`` task suite: the paper's ordered Franka Kitchen variant (``cotpc/FrankaKitchenOrdered-v0``).
 
-``cotpc demos kitchen`` writes demos from the scripted demonstrator (:mod:`cotpc.demos.kitchen`); ``cotpc eval`` on a
+``cotpc demos kitchen`` writes demos from the scripted demonstrator (:mod:`cotpc.envs.kitchen.demos`); ``cotpc eval`` on a
 kitchen run reports the success rate and the average number of sub-tasks completed in order
-(:mod:`cotpc.evaluation.kitchen`). ``cotpc reproduce kitchen`` is the paper's study: demos -> subskills (scored
+(:mod:`cotpc.envs.kitchen.rollout`). ``cotpc reproduce kitchen`` is the paper's study: demos -> subskills (scored
 against the demonstrator's sub-task boundaries) -> BC/DT/BeT/CoTPC x seeds -> the paper's two numbers on
 seen / val / unseen configs -> OUT/results.json and OUT/report.md, on the generic runner of
 :mod:`cotpc.studies.runs`. Importing this module imports neither mujoco nor gymnasium_robotics (the command line
@@ -23,10 +23,10 @@ import numpy as np
 import torch
 
 from cotpc.data.trajectories import load_trajectories, save_trajectories
-from cotpc.demos.kitchen import KitchenDemos, generate, make_demos, print_report, write_splits
-from cotpc.envs.kitchen import ENV_ID, HORIZON, PAPER_AVG_COMPLETED, PAPER_SUCCESS
+from cotpc.envs.kitchen.demos import KitchenDemos, generate, make_demos, print_report, write_splits
+from cotpc.envs.kitchen.env import ENV_ID, HORIZON, PAPER_AVG_COMPLETED, PAPER_SUCCESS
 from cotpc.envs.spec import task_defaults
-from cotpc.evaluation.kitchen import evaluate, evaluate_run, load_split_configs
+from cotpc.envs.kitchen.rollout import evaluate, evaluate_run, load_split_configs
 from cotpc.policies import get_preset
 from cotpc.subskills.labeling import label_file
 from cotpc.training.train import TrainConfig, resolve_device

@@ -20,10 +20,10 @@ from typing import Literal, Optional
 import numpy as np
 import torch
 
-from cotpc.demos.maniskill import ManiSkillDemos, make_demos, write_splits
-from cotpc.envs.maniskill import HORIZONS, import_maniskill, is_maniskill_env
+from cotpc.envs.maniskill.demos import ManiSkillDemos, make_demos, write_splits
+from cotpc.envs.maniskill.env import HORIZONS, import_maniskill, is_maniskill_env
 from cotpc.envs.spec import GENERIC, env_spec, task_defaults
-from cotpc.evaluation.maniskill import evaluate, evaluate_run, policy_loader
+from cotpc.envs.maniskill.rollout import evaluate, evaluate_run, policy_loader
 from cotpc.studies.runs import (PROTOCOL_CHECKPOINTS, Evaluation, cpu_count, fresh_eval, jsonable, provenance,
                                 plot_learning_curves, stats, train_and_evaluate)
 from cotpc.subskills.labeling import label_file
@@ -58,7 +58,7 @@ class ManiSkillStudySettings:
     paper_protocol: bool = False  # also evaluate the last PROTOCOL_CHECKPOINTS kept checkpoints on the test seeds
     jobs: int = 1
     control_mode: str = "pd_joint_delta_pos"
-    horizon: int | None = None  # None: the paper's (cotpc.envs.maniskill.HORIZONS)
+    horizon: int | None = None  # None: the paper's (cotpc.envs.maniskill.env.HORIZONS)
     beta: float | None = None  # None: the paper's single-arm beta
     procs: int = 2
     backend: str = "auto"

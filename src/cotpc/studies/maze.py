@@ -19,9 +19,9 @@ from typing import Optional
 import numpy as np
 import torch
 
-from cotpc.demos.maze import MazeDemos, make_demos, write_splits
-from cotpc.envs.moving_maze import ENV_ID, HORIZON, PAPER_MIN_ACTION, RULES, SPEC
-from cotpc.evaluation.maze import eval_name, evaluate, evaluate_run, load_split_configs
+from cotpc.envs.maze.demos import MazeDemos, make_demos, write_splits
+from cotpc.envs.maze.env import ENV_ID, HORIZON, PAPER_MIN_ACTION, RULES, SPEC
+from cotpc.envs.maze.rollout import eval_name, evaluate, evaluate_run, load_split_configs
 from cotpc.studies.suites import Suite, register_suite
 from cotpc.studies.runs import (
     PROTOCOL_CHECKPOINTS, Evaluation, cpu_count, fresh_eval, jsonable, plot_learning_curves, policy_loader, provenance,
@@ -466,7 +466,7 @@ def reproduce(cfg: MazeReproduce) -> dict:
 
 
 def _subskill_plots(plot_dir: Path, episodes: list, ends: list, titles: list) -> list[Path]:
-    from cotpc.demos.maze_figure import plot_maze_paths  # imports matplotlib (heavy): only when plotting
+    from cotpc.envs.maze.figure import plot_maze_paths  # imports matplotlib (heavy): only when plotting
 
     return [plot_maze_paths(plot_dir / "subskills_maze_paths.png", episodes, ends, titles)]
 

@@ -1,10 +1,10 @@
 """Task suites: what the command line runs for each benchmark, found by name (``cotpc demos NAME``, ``cotpc
 reproduce NAME``) or by a run's env id (``cotpc eval``, ``cotpc segment --plot``).
 
-A suite is declared once, in the study module of its environment (``studies/maze.py``: Moving Maze;
-``studies/maniskill.py``: the ManiSkill3 tasks), next to the environment's own modules in each layer
-(``envs/``, ``demos/``, ``evaluation/``). Adding a benchmark is those modules and one line in
-:data:`SUITE_MODULES`; nothing in ``cli/`` changes.
+A suite is declared once, in the study module of its environment (``studies/<name>.py`` for each name in
+:data:`cotpc.envs.TASKS`: ``maze``, ``maniskill``, ``kitchen``), from the environment's own folder ``envs/<name>/``
+(demos, rollouts) and the generic runner. Adding a benchmark is its folder, its study and its name in
+``cotpc.envs.TASKS``; nothing in ``cli/`` changes.
 """
 
 from __future__ import annotations
@@ -14,8 +14,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Optional
 
-# The modules that declare a suite, imported on first use (each registers its own).
-SUITE_MODULES = ("cotpc.studies.maze", "cotpc.studies.maniskill", "cotpc.studies.kitchen")
+from cotpc.envs import TASKS
+
+# The modules that declare a suite, one per environment folder, imported on first use (each registers its own).
+SUITE_MODULES = tuple(f"cotpc.studies.{name}" for name in TASKS)
 
 
 @dataclass(frozen=True)

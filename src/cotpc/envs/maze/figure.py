@@ -1,4 +1,4 @@
-"""Figure of Moving Maze configurations with demo paths: ``python -m cotpc.demos.maze_figure OUT.png``.
+"""Figure of Moving Maze configurations with demo paths: ``python -m cotpc.envs.maze.figure OUT.png``.
 
 Each panel is one training configuration: islands (blue), the blocks at their initial positions (green, the
 target gold), the band each moving block travels (light green), and the demo path coloured by region with the
@@ -18,9 +18,9 @@ import numpy as np  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 
 from cotpc.data.targets import key_state_indices  # noqa: E402
-from cotpc.demos.maze import plan_demo  # noqa: E402
+from cotpc.envs.maze.demos import plan_demo  # noqa: E402
 
-from cotpc.envs.moving_maze import (  # noqa: E402
+from cotpc.envs.maze.env import (  # noqa: E402
     BLOCK,
     BRIDGE1_X_RANGE,
     BRIDGE1_Y,

@@ -466,4 +466,5 @@ def render_frame(
 SPEC = register(EnvSpec(
     ENV_ID, HORIZON, TaskDefaults(context=20, n_centres=1024, beta=1.0, cost="sum-cosine"), SEEDS,
     paper_success={"bc": 9.0, "dt": 23.0, "bet": 33.0, "cotpc": 44.0},
+    entry_point="cotpc.envs.maze.env:MovingMazeEnv",
 ))

@@ -1,6 +1,6 @@
 """ManiSkill3 demonstrations from the official motion planners, converted to state observations.
 
-For each seed of a split (in order, from :data:`cotpc.envs.maniskill.SEEDS`):
+For each seed of a split (in order, from :data:`cotpc.envs.maniskill.env.SEEDS`):
 
 1. ManiSkill3's motion-planning solution for the task (``mani_skill.examples.motionplanning.panda``) drives an
    environment in ``pd_joint_pos`` (what the planners output), headless; a seed whose plan fails or does not end
@@ -33,7 +33,7 @@ import torch
 from tqdm import tqdm
 
 from cotpc.data.trajectories import Episode, TrajectoryFormatError, TrajectorySet, load_trajectories, save_trajectories
-from cotpc.envs.maniskill import CONTROL_MODES, HORIZONS, SEEDS, flat_obs, import_maniskill, make_env
+from cotpc.envs.maniskill.env import CONTROL_MODES, HORIZONS, SEEDS, flat_obs, import_maniskill, make_env
 
 PLAN_CONTROL_MODE = "pd_joint_pos"
 PLAN_STEP_LIMIT = 1000  # no time limit interferes with planning or conversion (planner demos are ~100-300 steps)

@@ -4,7 +4,7 @@
   (``DEMOS/test.json``, a disjoint seed range, checked). For PegInsertionSide-v1 ManiSkill3 also draws the peg
   and hole sizes from the seed, so unseen seeds are unseen geometries too.
 - Each episode runs the full horizon (the paper's 200 steps for Stack Cube and Peg Insertion, see
-  :data:`cotpc.envs.maniskill.HORIZONS`) with terminations ignored, and reports ``success_once`` (success at any
+  :data:`cotpc.envs.maniskill.env.HORIZONS`) with terminations ignored, and reports ``success_once`` (success at any
   step) and ``success_at_end`` (at the last step), each with a 95% Wilson interval. Progress short of success is
   reported too, like the maze's region transitions: the rate at which each of the task's boolean stage flags
   (e.g. StackCube's ``is_cubeA_grasped``, ``is_cubeA_on_cubeB``) was ever true, and the mean over episodes of
@@ -33,7 +33,7 @@ import torch
 from tqdm import tqdm
 
 from cotpc.data.trajectories import load_trajectories
-from cotpc.envs.maniskill import HORIZONS, SEEDS, flat_obs, import_maniskill, make_env
+from cotpc.envs.maniskill.env import HORIZONS, SEEDS, flat_obs, import_maniskill, make_env
 from cotpc.evaluation.request import load_for_eval
 from cotpc.evaluation.stats import wilson_interval
 

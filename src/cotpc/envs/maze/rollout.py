@@ -15,7 +15,7 @@ import imageio.v2 as imageio
 import numpy as np
 
 from cotpc.data.trajectories import load_trajectories
-from cotpc.envs.moving_maze import (
+from cotpc.envs.maze.env import (
     ENV_ID, HORIZON, PAPER_MIN_ACTION, RULES, MazeConfig, MazeRules, MovingMazeBatch, check_seed, render_frame,
 )
 from cotpc.evaluation.replay import ReplayPolicy  # noqa: F401  (re-exported for the task's replay checks)
@@ -167,7 +167,7 @@ def evaluate(
 ) -> EvalResult:
     """Success rate of ``policy`` on the ``seen``, ``val`` or ``unseen`` Moving Maze configs of ``demo_dir``.
 
-    The rules default to the paper's (:class:`cotpc.envs.moving_maze.MazeRules`): ``deadly_gaps``, a step into
+    The rules default to the paper's (:class:`cotpc.envs.maze.env.MazeRules`): ``deadly_gaps``, a step into
     a gap ends the episode as a failure (False: it is blocked); ``min_action``, every action component's
     magnitude is raised to at least this (0: any action)."""
     configs, seeds, env_kwargs = _load_split(demo_dir, split, episodes)

@@ -37,7 +37,7 @@ from typing import Optional
 import numpy as np
 
 from cotpc.data.trajectories import Episode, TrajectorySet, save_trajectories
-from cotpc.envs.kitchen import (ENV_ID, HORIZON, NUM_REQUESTED, SEEDS, SUBTASKS, FrankaKitchenOrderedEnv, check_seed,
+from cotpc.envs.kitchen.env import (ENV_ID, HORIZON, NUM_REQUESTED, SEEDS, SUBTASKS, FrankaKitchenOrderedEnv, check_seed,
                                validate_tasks)
 
 DT = 0.08  # the base environment's control period (40 MuJoCo steps of 2 ms)

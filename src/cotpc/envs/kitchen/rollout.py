@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from cotpc.data.trajectories import load_trajectories
-from cotpc.envs.kitchen import ENV_ID, HORIZON, NUM_REQUESTED, FrankaKitchenOrderedEnv, check_seed, validate_tasks
+from cotpc.envs.kitchen.env import ENV_ID, HORIZON, NUM_REQUESTED, FrankaKitchenOrderedEnv, check_seed, validate_tasks
 from cotpc.evaluation.replay import ReplayPolicy  # noqa: F401  (re-exported for the task's replay checks)
 from cotpc.evaluation.request import load_for_eval
 from cotpc.evaluation.stats import wilson_interval

@@ -30,7 +30,7 @@ from typing import Literal
 import numpy as np
 
 from cotpc.data.trajectories import Episode, TrajectorySet, save_trajectories
-from cotpc.envs.moving_maze import (
+from cotpc.envs.maze.env import (
     BLOCK,
     BRIDGE1_X_RANGE,
     BRIDGE1_Y,
@@ -82,7 +82,7 @@ class _StaticMaze:
         return any(r[0] <= x <= r[1] and r[2] <= y <= r[3] for r in self.rects)
 
     def region(self, x: float, y: float) -> int:
-        # Same rules as moving_maze.region_of, in scalar form (checked against it in the tests).
+        # Same rules as env.region_of, in scalar form (checked against it in the tests).
         r = -1
         top, mid, bot = ISLANDS
         if _in(top, x, y):

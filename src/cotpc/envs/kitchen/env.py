@@ -303,4 +303,5 @@ class FrankaKitchenOrderedEnv(gym.Env):
 SPEC = register(EnvSpec(
     ENV_ID, HORIZON, TaskDefaults(context=10, n_centres=1024, beta=0.05, cost="mean-cosine"), SEEDS,
     paper_success=PAPER_SUCCESS,
+    entry_point="cotpc.envs.kitchen.env:FrankaKitchenOrderedEnv",  # mujoco is imported when one is made
 ))
