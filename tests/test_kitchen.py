@@ -102,7 +102,7 @@ def test_spec_and_gym_make():
 
     spec = env_spec(K.ENV_ID)
     assert spec.horizon == 280 and spec.defaults.context == 10 and spec.defaults.n_centres == 1024
-    assert spec.defaults.beta == 0.05 and spec.paper_success["cotpc"] == 25.6
+    assert (spec.defaults.beta, spec.defaults.cost) == (5.0, "sum-cosine") and spec.paper_success["cotpc"] == 25.6
     for a in ("train", "val", "test"):
         for b in ("train", "val", "test"):
             if a < b:

@@ -299,9 +299,12 @@ class FrankaKitchenOrderedEnv(gym.Env):
 
 
 # What the rest of the package knows about the kitchen variant (cotpc.envs.spec): the paper's context 10 and
-# K = 1024 (its kitchen BeT), beta 0.05 (the paper's value for all single-arm tasks) with its mean-cosine cost.
+# K = 1024 (its kitchen BeT). Beta and cost were chosen as the paper's appendix says (tuned on a few validation
+# demos per action space), scored against the demonstrator's sub-task boundaries on the val split only
+# (docs/kitchen.md has the sweep): the paper's single-arm 0.05 with its mean-cosine cost leaves 1.3 subskills per
+# joint-velocity demo (recall 0.02); sum-cosine with beta 5 gives 7 per demo and the best F1 (0.41 within 5 steps).
 SPEC = register(EnvSpec(
-    ENV_ID, HORIZON, TaskDefaults(context=10, n_centres=1024, beta=0.05, cost="mean-cosine"), SEEDS,
+    ENV_ID, HORIZON, TaskDefaults(context=10, n_centres=1024, beta=5.0, cost="sum-cosine"), SEEDS,
     paper_success=PAPER_SUCCESS,
     entry_point="cotpc.envs.kitchen.env:FrankaKitchenOrderedEnv",  # mujoco is imported when one is made
 ))
