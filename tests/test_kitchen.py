@@ -239,7 +239,29 @@ def test_write_splits_and_replay(tmp_path):
         result = ev.evaluate(ev.ReplayPolicy([ep.actions for ep in data.episodes]), tmp_path, split)
         assert result.success.all() and (result.completed == 4).all()
         assert result.summary()["mean_completed"] == 4.0
+    # a recorded rollout: frames every frame_every steps and at the end, a captioned GIF named by the outcome
+    data = load_trajectories(tmp_path / "val.h5")
+    result = ev.rollout(ev.ReplayPolicy([data.episodes[0].actions]), ev.load_split_configs(tmp_path, "val"), "val",
+                        videos=1, video_size=32, frame_every=100)
+    steps = [step for _, _, step in result.frames[0]]
+    assert steps == [0, 100, 200][: len(steps) - 1] + [data.episodes[0].num_steps]
+    assert result.frames[0][-1][1]["success"] and result.frames[0][-1][0].shape == (32, 32, 3)
+    (gif,) = ev.write_videos(result, tmp_path / "videos")
+    assert gif.name == f"seed{result.seeds[0]}_success_4of4.gif" and gif.stat().st_size > 0
     result = ev.evaluate(ev.ReplayPolicy([np.zeros((0, 9))]), tmp_path, "unseen", horizon=20)
     assert not result.success.any() and result.summary()["mean_completed"] == 0.0
     with pytest.raises(ValueError, match="check_seed|belongs to"):
         ev.check_seed(0, "test")
+
+
+def test_video_caption_marks_the_requested_order_and_what_is_done():
+    from cotpc.envs.kitchen import rollout as ev
+
+    image = np.zeros((40, 120, 3), dtype=np.uint8)
+    tasks = ("kettle", "microwave", "light switch", "hinge cabinet")
+    green = lambda img: int(((img[..., 1] > 100) & (img[..., 0] < 60)).sum())  # noqa: E731  (the "done" colour)
+    before = ev.caption(image, tasks, {"completed": [], "success": False, "violation": None}, 0)
+    after = ev.caption(image, tasks, {"completed": ["kettle", "microwave"], "success": False, "violation": None}, 9)
+    assert before.shape[1] == 120 and before.shape[0] > 40 and before.shape == after.shape
+    np.testing.assert_array_equal(before[-40:], image)  # the frame itself is untouched, the caption above it
+    assert green(before) == 0 < green(after)
