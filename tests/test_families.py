@@ -78,8 +78,9 @@ class LinearPolicy(nn.Module):
 
 
 def test_a_new_family_is_one_registration(tmp_path):
-    register_family("linear-test", LinearConfig, LinearPolicy)
+    register_family("linear-test", LinearConfig, LinearPolicy, presets={"linear": LinearConfig()})
     try:
+        assert get_preset("linear") == LinearConfig()  # found by --policy linear, like every preset
         model = make_model(LinearConfig(), 4, 3, 0)
         assert isinstance(model, LinearPolicy)
         run = save_checkpoint(tmp_path / "run", model, {})
@@ -90,5 +91,11 @@ def test_a_new_family_is_one_registration(tmp_path):
                                    rtol=1e-6)
         with pytest.raises(ValueError, match="already registered"):
             register_family("linear-test", LinearConfig, nn.Linear)
+        with pytest.raises(ValueError, match="preset 'bet' is already registered"):
+            register_family("linear-test", LinearConfig, LinearPolicy, presets={"bet": LinearConfig()})
+        with pytest.raises(ValueError, match="is a MLPConfig, not a LinearConfig"):
+            register_family("linear-test", LinearConfig, LinearPolicy, presets={"linear-2": MLPConfig()})
+        assert "linear-2" not in PRESETS
     finally:
         FAMILIES.pop("linear-test")
+        PRESETS.pop("linear")

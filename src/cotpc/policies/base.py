@@ -1,8 +1,8 @@
 """What every policy family shares, and the registry that finds a family by its config's type or name.
 
 A family is one config dataclass (deriving from :class:`BaseConfig`) and one model class (an ``nn.Module`` built
-as ``Model(cfg, obs_dim, action_dim, max_timestep)``), registered once with :func:`register_family` by the module
-that defines them: the transformer (:mod:`cotpc.policies.model`: DT, BeT, CoTPC and the ablations as presets),
+as ``Model(cfg, obs_dim, action_dim, max_timestep)``), registered once with :func:`register_family`, with its
+named presets (``--policy NAME``), by the module that defines them: the transformer (:mod:`cotpc.policies.model`: DT, BeT, CoTPC and the ablations as presets),
 the Markovian MLP (:mod:`cotpc.policies.mlp`), Diffusion Policy (:mod:`cotpc.policies.diffusion`) and Decision
 Diffuser (:mod:`cotpc.policies.decision_diffuser`).
 :func:`make_model`, the checkpoint format (``config.json`` names the family) and :func:`cotpc.load_policy` find
@@ -96,14 +96,34 @@ class Family:
 
 
 FAMILIES: dict[str, Family] = {}
+PRESETS: dict[str, BaseConfig] = {}
+"""Every policy by its ``--policy`` name, as its family registered it."""
 
 
-def register_family(name: str, config: type[BaseConfig], model: type[nn.Module]) -> Family:
-    """Register a policy family (once, in the module that defines it)."""
+def register_family(name: str, config: type[BaseConfig], model: type[nn.Module],
+                    presets: dict[str, BaseConfig] | None = None) -> Family:
+    """Register a policy family and its named presets (once, in the module that defines it)."""
     if name in FAMILIES and (FAMILIES[name].config, FAMILIES[name].model) != (config, model):
         raise ValueError(f"policy family {name!r} is already registered")
+    for preset, cfg in (presets or {}).items():
+        if type(cfg) is not config:
+            raise ValueError(f"preset {preset!r} of family {name!r} is a {type(cfg).__name__}, not a {config.__name__}")
+        if preset in PRESETS and PRESETS[preset] != cfg:
+            raise ValueError(f"policy preset {preset!r} is already registered")
+        cfg.validate()
     FAMILIES[name] = Family(name, config, model)
+    PRESETS.update(presets or {})
     return FAMILIES[name]
+
+
+def get_preset(name: str, **overrides) -> BaseConfig:
+    """The preset ``name`` with the given settings changed. Settings left None keep the preset's, and settings its
+    family does not have (the context of the Markovian MLP, say) are ignored."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown policy {name!r}; choose one of {', '.join(PRESETS)}")
+    cfg = PRESETS[name]
+    fields = {f.name for f in dataclasses.fields(cfg)}
+    return cfg.replace(**{k: v for k, v in overrides.items() if v is not None and k in fields})
 
 
 def family_of(cfg: BaseConfig) -> Family:

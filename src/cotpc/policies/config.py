@@ -1,10 +1,11 @@
-"""The transformer family's configuration, and every policy of the paper as a named preset.
+"""The transformer family's configuration, and its named presets: DT, BeT, CoTPC and the paper's ablations.
 
 The baselines (DT, BeT) and the ablations of paper Table 4 are *settings* of one transformer
 (:mod:`cotpc.policies.transformer`, :mod:`cotpc.policies.model`), not separate models; only ``decoupled`` (which
 adds a second transformer for the CoT) differs in structure. ``bc`` is its own family (:mod:`cotpc.policies.mlp`),
 and so are ``dp``, Diffusion Policy (:mod:`cotpc.policies.diffusion`), and ``dd``, Decision Diffuser
-(:mod:`cotpc.policies.decision_diffuser`).
+(:mod:`cotpc.policies.decision_diffuser`); each registers its presets with its family
+(:func:`cotpc.policies.base.register_family`), and :data:`cotpc.policies.PRESETS` holds them all.
 """
 
 from __future__ import annotations
@@ -14,9 +15,6 @@ from dataclasses import dataclass
 from typing import Literal
 
 from cotpc.policies.base import BaseConfig
-from cotpc.policies.decision_diffuser import DDConfig
-from cotpc.policies.diffusion import DPConfig
-from cotpc.policies.mlp import MLPConfig
 
 Source = Literal["state", "cot", "action"]
 CotTarget = Literal["next", "last", "random"]
@@ -118,13 +116,11 @@ _COTPC = TransformerConfig(
     name="cotpc", n_cot=-1, action_head="bet", centre_from="state", offset_from="cot", cot_targets=("next", "last")
 )
 
-PRESETS: dict[str, BaseConfig] = {
-    # Baselines (paper appendix "Implementation Details").
-    "bc": MLPConfig(),
+# The transformer family's presets (registered with the family in cotpc.policies.model).
+TRANSFORMER_PRESETS: dict[str, TransformerConfig] = {
+    # Baselines (paper appendix "Implementation Details"); bc, dp and dd are families of their own.
     "dt": TransformerConfig(name="dt", action_head="mse"),
     "bet": TransformerConfig(name="bet", action_head="bet"),
-    "dp": DPConfig(),  # Diffusion Policy, ~1.2M parameters as in the paper
-    "dd": DDConfig(),  # Decision Diffuser, ~1.6M parameters, context 20, horizon 4, as in the paper
     # The method.
     "cotpc": _COTPC,
     # The method without the hybrid mask's target leak: CoT token i sees only what is known at window index i.
@@ -140,15 +136,3 @@ PRESETS: dict[str, BaseConfig] = {
     "no-rand-mask": dataclasses.replace(_COTPC, name="no-rand-mask", random_cot_mask=False),
     "decoupled": dataclasses.replace(_COTPC, name="decoupled", decoupled=True, offset_from="state"),
 }
-for _cfg in PRESETS.values():
-    _cfg.validate()
-
-
-def get_preset(name: str, **overrides) -> BaseConfig:
-    """The preset ``name`` with the given settings changed. Settings left None keep the preset's, and settings its
-    family does not have (the context of the Markovian MLP, say) are ignored."""
-    if name not in PRESETS:
-        raise ValueError(f"unknown policy {name!r}; choose one of {', '.join(PRESETS)}")
-    cfg = PRESETS[name]
-    fields = {f.name for f in dataclasses.fields(cfg)}
-    return cfg.replace(**{k: v for k, v in overrides.items() if v is not None and k in fields})

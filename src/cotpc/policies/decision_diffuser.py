@@ -293,4 +293,5 @@ class DecisionDiffuser(nn.Module):
         return {"denoise": last["denoise"], "inv": inv, "bc": 0.5 * (last["denoise"] + inv)}, last
 
 
-register_family("decision-diffuser", DDConfig, DecisionDiffuser)
+register_family("decision-diffuser", DDConfig, DecisionDiffuser,
+                presets={"dd": DDConfig()})  # ~1.6M parameters, context 20, horizon 4, as the paper

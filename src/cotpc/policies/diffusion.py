@@ -322,4 +322,4 @@ class DiffusionPolicy(nn.Module):
         return {"denoise": last["denoise"], "bc": last["bc"]}, last
 
 
-register_family("diffusion", DPConfig, DiffusionPolicy)
+register_family("diffusion", DPConfig, DiffusionPolicy, presets={"dp": DPConfig()})  # ~1.2M parameters, as the paper

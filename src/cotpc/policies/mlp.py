@@ -62,4 +62,4 @@ class MLPPolicy(nn.Module):
         return self.loss(batch)[1], self.inference_metrics(batch)
 
 
-register_family("mlp", MLPConfig, MLPPolicy)
+register_family("mlp", MLPConfig, MLPPolicy, presets={"bc": MLPConfig()})

@@ -16,7 +16,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from cotpc.policies.base import Normaliser, mlp, register_family
-from cotpc.policies.config import TransformerConfig
+from cotpc.policies.config import TRANSFORMER_PRESETS, TransformerConfig
 from cotpc.policies.transformer import GPT, run_mlp
 
 
@@ -340,4 +340,4 @@ def _init_weights(m: nn.Module) -> None:
             nn.init.normal_(m.cot_tokens, std=0.02)
 
 
-register_family("transformer", TransformerConfig, TransformerPolicy)
+register_family("transformer", TransformerConfig, TransformerPolicy, presets=TRANSFORMER_PRESETS)

@@ -33,7 +33,7 @@ from tqdm import tqdm
 from cotpc.data.dataset import MissingSubskillsError, Stats, WindowDataset, split_episodes
 from cotpc.data.trajectories import TrajectoryFormatError, load_trajectories
 from cotpc.envs.spec import task_defaults
-from cotpc.policies.config import PRESETS, get_preset
+from cotpc.policies import PRESETS, get_preset
 from cotpc.policies.kmeans import kmeans
 from cotpc.policies.base import config_from_dict, config_to_dict, make_model
 from cotpc.policies.policy import CheckpointError, load_state, save_checkpoint
