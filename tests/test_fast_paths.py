@@ -11,7 +11,7 @@ import torch.nn.functional as F
 from cotpc.data import save_trajectories
 from cotpc.data.dataset import synthetic_trajectories
 from cotpc.policies import PRESETS, TransformerConfig
-from cotpc.policies.model import RowGatheredLinear
+from cotpc.policies.transformer import RowGatheredLinear
 from cotpc.policies.transformer import Layout, MaskedAttention, build_mask, mask_to_bias
 from cotpc.training import TrainConfig, train
 from cotpc.training.precision import choose_precision, time_alternating
@@ -182,7 +182,7 @@ def test_precision_probe_is_stored_and_leaves_the_run_unchanged(tmp_path):
 def test_dense_offset_path_under_bf16_matches_the_gathered_one(trajs):
     """Under bf16 autocast with K <= h the offset head runs dense (cheaper there); it must give the true centre's
     offsets and gradients as the row-gathered path does, to bf16 accuracy."""
-    import cotpc.policies.model as model_module
+    import cotpc.policies.transformer.model as model_module
 
     model, ds = build("cotpc", trajs)
     hidden = torch.randn(4, 6, model.cfg.hidden)

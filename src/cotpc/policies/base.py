@@ -2,9 +2,10 @@
 
 A family is one config dataclass (deriving from :class:`BaseConfig`) and one model class (an ``nn.Module`` built
 as ``Model(cfg, obs_dim, action_dim, max_timestep)``), registered once with :func:`register_family`, with its
-named presets (``--policy NAME``), by the module that defines them: the transformer (:mod:`cotpc.policies.model`: DT, BeT, CoTPC and the ablations as presets),
-the Markovian MLP (:mod:`cotpc.policies.mlp`), Diffusion Policy (:mod:`cotpc.policies.diffusion`) and Decision
-Diffuser (:mod:`cotpc.policies.decision_diffuser`).
+named presets (``--policy NAME``), by the module that defines them: the transformer
+(:mod:`cotpc.policies.transformer`, one folder: DT, BeT, CoTPC and the ablations as presets), the Markovian MLP
+(:mod:`cotpc.policies.mlp`), Diffusion Policy (:mod:`cotpc.policies.diffusion`) and Decision Diffuser
+(:mod:`cotpc.policies.decision_diffuser`).
 :func:`make_model`, the checkpoint format (``config.json`` names the family) and :func:`cotpc.load_policy` find
 it here.
 """

@@ -15,7 +15,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from cotpc.policies.base import BaseConfig, config_from_dict, config_to_dict, make_model
-from cotpc.policies.model import TransformerPolicy
+from cotpc.policies.transformer import TransformerPolicy
 
 FORMAT = "cotpc-policy"
 

@@ -1,7 +1,7 @@
 """The transformer family's configuration, and its named presets: DT, BeT, CoTPC and the paper's ablations.
 
 The baselines (DT, BeT) and the ablations of paper Table 4 are *settings* of one transformer
-(:mod:`cotpc.policies.transformer`, :mod:`cotpc.policies.model`), not separate models; only ``decoupled`` (which
+(:mod:`cotpc.policies.transformer.backbone`, :mod:`cotpc.policies.transformer.model`), not separate models; only ``decoupled`` (which
 adds a second transformer for the CoT) differs in structure. ``bc`` is its own family (:mod:`cotpc.policies.mlp`),
 and so are ``dp``, Diffusion Policy (:mod:`cotpc.policies.diffusion`), and ``dd``, Decision Diffuser
 (:mod:`cotpc.policies.decision_diffuser`); each registers its presets with its family
@@ -116,7 +116,7 @@ _COTPC = TransformerConfig(
     name="cotpc", n_cot=-1, action_head="bet", centre_from="state", offset_from="cot", cot_targets=("next", "last")
 )
 
-# The transformer family's presets (registered with the family in cotpc.policies.model).
+# The transformer family's presets (registered with the family in cotpc.policies.transformer.model).
 TRANSFORMER_PRESETS: dict[str, TransformerConfig] = {
     # Baselines (paper appendix "Implementation Details"); bc, dp and dd are families of their own.
     "dt": TransformerConfig(name="dt", action_head="mse"),

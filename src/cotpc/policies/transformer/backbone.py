@@ -33,7 +33,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from cotpc.policies.base import mlp
-from cotpc.policies.config import TransformerConfig
+from cotpc.policies.transformer.config import TransformerConfig
 
 
 class Layout:

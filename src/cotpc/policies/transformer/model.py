@@ -1,5 +1,5 @@
 """The transformer family's network: the policy of DT, BeT, CoTPC and its ablations (registered as the family
-``transformer`` with :class:`~cotpc.policies.config.TransformerConfig`).
+``transformer`` with :class:`~cotpc.policies.transformer.config.TransformerConfig`).
 
 It takes *normalised* tensors. The normalisation statistics and the k-means centres are buffers, so they are
 saved in ``model.safetensors`` with the weights.
@@ -16,8 +16,8 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from cotpc.policies.base import Normaliser, mlp, register_family
-from cotpc.policies.config import TRANSFORMER_PRESETS, TransformerConfig
-from cotpc.policies.transformer import GPT, run_mlp
+from cotpc.policies.transformer.config import TRANSFORMER_PRESETS, TransformerConfig
+from cotpc.policies.transformer.backbone import GPT, run_mlp
 
 
 class RowGatheredLinear(torch.autograd.Function):
