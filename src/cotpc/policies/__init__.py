@@ -4,11 +4,10 @@ inference wrapper."""
 
 from cotpc.policies.base import (FAMILIES, PRESETS, BaseConfig, config_from_dict, config_to_dict, get_preset,
                                  make_model, register_family)
-from cotpc.policies.transformer import TransformerConfig
 
 # The families: importing each module registers it and its presets (this order is the order of `--policy`).
 from cotpc.policies.mlp import MLPConfig, MLPPolicy  # bc  # isort: skip
-from cotpc.policies.transformer import TransformerPolicy  # dt, bet, cotpc and the ablations  # isort: skip
+from cotpc.policies.transformer import TransformerConfig, TransformerPolicy  # dt, bet, cotpc, ablations  # isort: skip
 from cotpc.policies.diffusion import DiffusionPolicy, DPConfig  # dp  # isort: skip
 from cotpc.policies.decision_diffuser import DDConfig, DecisionDiffuser  # dd  # isort: skip
 from cotpc.policies.policy import CheckpointError, Policy, load_model, load_policy, save_checkpoint
