@@ -20,7 +20,6 @@ import contextlib
 import importlib.util
 import io
 import json
-import platform
 import statistics
 import time
 from dataclasses import asdict, dataclass
@@ -35,7 +34,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from cotpc.data.dataset import Stats, WindowDataset, synthetic_trajectories
 from cotpc.policies import PRESETS, get_preset, make_model
 from cotpc.policies.kmeans import kmeans
-from cotpc.training.precision import PrecisionChoice, autocast_for, time_alternating
+from cotpc.training.precision import PrecisionChoice, autocast_for, cpu_info, time_alternating
 from cotpc.training.train import make_optimizer, probe_precision, train_step
 
 SETTINGS = {
@@ -86,20 +85,6 @@ def matmul_peak(dtype: torch.dtype, n: int = 2048, reps: int = 5, budget_s: floa
         if size >= n or best > budget_s / 8:  # the next size takes 8x longer
             return 2 * size**3 / best / 1e9
         size *= 2
-
-
-def cpu_info() -> dict:
-    """The CPU model and the flags that decide the fast path (AMX, AVX512-BF16), from /proc/cpuinfo."""
-    model, flags = platform.processor() or platform.machine(), set()
-    with contextlib.suppress(OSError):
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name") and model in ("", platform.machine(), platform.processor()):
-                model = line.split(":", 1)[1].strip()
-            if line.startswith("flags"):
-                flags = set(line.split(":", 1)[1].split())
-                break
-    keep = sorted(f for f in flags if f.startswith(("amx", "avx512_bf16", "avx512f", "avx2", "avx_vnni")))
-    return {"model": model, "flags": keep, "amx_bf16": "amx_bf16" in flags}
 
 
 def policy_step(name: str, setting: str, bf16: Optional[bool]) -> tuple[Callable[[], object], dict]:

@@ -30,8 +30,8 @@ from cotpc.envs.kitchen.rollout import evaluate, evaluate_run, load_split_config
 from cotpc.policies import get_preset
 from cotpc.subskills.labeling import label_file
 from cotpc.training.train import TrainConfig, resolve_device
-from cotpc.studies.runs import (Evaluation, cpu_count, fresh_eval, plot_learning_curves, provenance, stats,
-                                train_and_evaluate)
+from cotpc.studies.runs import (Evaluation, cpu_count, describe_hardware, fresh_eval, plot_learning_curves,
+                                provenance, stats, train_and_evaluate)
 from cotpc.studies.suites import Suite, register_suite
 
 SPLITS = ("seen", "val", "unseen")
@@ -195,8 +195,7 @@ def write_report(results: dict, out: Path) -> Path:
         f"{meta['context']}, {s['seeds']} seed(s) per policy, horizon {meta['horizon']}.  ",
         f"Checkpoints: {meta['checkpoint_selection']}.  ",
         f"Training {meta['train_seconds_total'] / 60:.1f} min in all, this invocation {meta['wall_seconds'] / 60:.1f} "
-        f"min, on {meta['hardware']['cpus']} CPU(s) ({meta['hardware']['machine']}"
-        f"{', ' + meta['hardware']['cuda'] if meta['hardware'].get('cuda') else ''}); torch "
+        f"min, on {describe_hardware(meta['hardware'])}; torch "
         f"{meta['versions']['torch']}, mujoco {meta['versions']['mujoco']}, gymnasium-robotics "
         f"{meta['versions']['gymnasium_robotics']}.",
         "",

@@ -24,8 +24,8 @@ from cotpc.envs.maniskill.demos import ManiSkillDemos, make_demos, write_splits
 from cotpc.envs.maniskill.env import HORIZONS, import_maniskill, is_maniskill_env
 from cotpc.envs.spec import GENERIC, env_spec, task_defaults
 from cotpc.envs.maniskill.rollout import evaluate, evaluate_run, policy_loader
-from cotpc.studies.runs import (PROTOCOL_CHECKPOINTS, Evaluation, cpu_count, fresh_eval, jsonable, provenance,
-                                plot_learning_curves, stats, train_and_evaluate)
+from cotpc.studies.runs import (PROTOCOL_CHECKPOINTS, Evaluation, cpu_count, describe_hardware, fresh_eval, jsonable,
+                                plot_learning_curves, provenance, stats, train_and_evaluate)
 from cotpc.subskills.labeling import label_file
 from cotpc.training.train import TrainConfig
 from cotpc.studies.suites import Suite, register_suite
@@ -245,8 +245,7 @@ def write_report(results: dict, out: Path) -> Path:
         f"{extra['iters']} training iterations per run at batch {extra.get('batch_size') or 'default (256; bc 32)'}, "
         f"{extra.get('n_centres') or f'default ({GENERIC.n_centres})'} k-means centres, {s['seeds']} seed(s) per policy, "
         f"{s['control_mode']} actions, state observations. Checkpoints: {meta['checkpoint_selection']}.  ",
-        f"This invocation {meta['wall_seconds'] / 60:.1f} min on {meta['hardware']['cpus']} CPU(s) "
-        f"({meta['hardware']['machine']}{', ' + meta['hardware']['cuda'] if meta['hardware'].get('cuda') else ''}); "
+        f"This invocation {meta['wall_seconds'] / 60:.1f} min on {describe_hardware(meta['hardware'])}; "
         f"torch {meta['versions']['torch']}, mani-skill {meta['versions']['mani_skill']}, "
         f"sapien {meta['versions']['sapien']}.",
         "",

@@ -24,8 +24,8 @@ from cotpc.envs.maze.env import ENV_ID, HORIZON, PAPER_MIN_ACTION, RULES, SPEC
 from cotpc.envs.maze.rollout import eval_name, evaluate, evaluate_run, load_split_configs
 from cotpc.studies.suites import Suite, register_suite
 from cotpc.studies.runs import (
-    PROTOCOL_CHECKPOINTS, Evaluation, cpu_count, fresh_eval, jsonable, plot_learning_curves, policy_loader, provenance,
-    stats, train_and_evaluate,
+    PROTOCOL_CHECKPOINTS, Evaluation, cpu_count, describe_hardware, fresh_eval, jsonable, plot_learning_curves,
+    policy_loader, provenance, stats, train_and_evaluate,
 )
 from cotpc.subskills.labeling import label_file
 from cotpc.training.train import TrainConfig, resolve_device
@@ -235,8 +235,8 @@ def write_report(results: dict, out: Path) -> Path:
         f"horizon {meta['horizon']}.  ",
         f"Checkpoints: {meta['checkpoint_selection']}.  ",
         f"Training {meta.get('train_seconds_total', 0) / 60:.1f} min in all, this invocation "
-        f"{meta['wall_seconds'] / 60:.1f} min, on {meta['hardware']['cpus']} CPU(s) "
-        f"({meta['hardware']['machine']}); torch {meta['versions']['torch']}, numpy {meta['versions']['numpy']}.",
+        f"{meta['wall_seconds'] / 60:.1f} min, on {describe_hardware(meta['hardware'])}; torch "
+        f"{meta['versions']['torch']}, numpy {meta['versions']['numpy']}.",
         "",
         f"Success rate (%): mean ± std over seeds, best seed in brackets; region transitions: mean of 5. "
         f"The paper's rules (the default): a step into a gap ends the episode as a failure, and every action "

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from cotpc.policies import config_from_dict, config_to_dict, get_preset, load_policy
+from cotpc.training.precision import cpu_info
 from cotpc.training.train import TrainConfig, train
 
 # The paper reports the best of 3 runs over the last 20 checkpoints (ManiSkill2; the protocol of Diffusion Policy).
@@ -50,8 +51,18 @@ def provenance(*packages: str) -> dict:
         "versions": {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
                      **{p.replace("-", "_"): version_of(p) for p in packages}},
         "hardware": {"machine": platform.machine(), "processor": platform.processor(), "cpus": cpu_count(),
+                     "cpu": cpu_info(),  # model and the flags that decide the precision (AMX, AVX512-BF16)
                      "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None},
     }
+
+
+def describe_hardware(hardware: dict) -> str:
+    """One line for a report: CPU count, model and fast-path flags, and the GPU (older results lack some)."""
+    cpu = hardware.get("cpu") or {}
+    text = f"{hardware.get('cpus')} CPU(s), {cpu.get('model') or hardware.get('machine')}"
+    if cpu.get("flags"):
+        text += f" ({' '.join(cpu['flags'])})"
+    return text + (f", {hardware['cuda']}" if hardware.get("cuda") else "")
 
 
 def jsonable(settings) -> dict:

@@ -10,8 +10,11 @@ rounds (a busy machine only ever slows a round down, so the minimum is the fair 
 
 from __future__ import annotations
 
+import contextlib
+import platform
 import time
 from contextlib import nullcontext
+from pathlib import Path
 from dataclasses import asdict, dataclass
 from typing import Callable, Optional
 
@@ -136,3 +139,17 @@ def choose_precision(make_step: Callable[[bool, int], Callable[[], object]], bat
     how = (f"bf16 step {'faster' if use else 'not faster'} than fp32 by the {margin} margin "
            f"(fastest of {rounds} alternating rounds)")
     return PrecisionChoice(use, how, 1000 * fp32, 1000 * bf16, batch_size)
+
+
+def cpu_info() -> dict:
+    """The CPU model and the flags that decide the fast path (AMX, AVX512-BF16), from /proc/cpuinfo."""
+    model, flags = platform.processor() or platform.machine(), set()
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name") and model in ("", platform.machine(), platform.processor()):
+                model = line.split(":", 1)[1].strip()
+            if line.startswith("flags"):
+                flags = set(line.split(":", 1)[1].split())
+                break
+    keep = sorted(f for f in flags if f.startswith(("amx", "avx512_bf16", "avx512f", "avx2", "avx_vnni")))
+    return {"model": model, "flags": keep, "amx_bf16": "amx_bf16" in flags}
