@@ -1,6 +1,7 @@
 """The training loop: run directory contents, exact resume, clear errors, bf16 tracking fp32, the CLI."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -176,3 +177,18 @@ def test_training_leaves_the_callers_thread_count(tmp_path):
     torch.set_num_threads(2)
     train(TrainConfig(data=data, policy="bc", out=tmp_path / "run", iters=2, threads=1, progress=False))
     assert torch.get_num_threads() == 2
+
+
+def test_checkpoint_interval_defaults_follow_the_run_length():
+    """--ckpt-every defaults to a tenth of the run (at most 5000), a twentieth with --keep-checkpoints (the
+    paper's last-20 protocol), so a short run with --keep-checkpoints keeps a curve, not only its last weights."""
+    from cotpc.training.train import PROTOCOL_CHECKPOINTS, checkpoint_interval
+
+    def interval(**kw):
+        return checkpoint_interval(TrainConfig(data=Path("x.h5"), **kw))
+
+    assert interval(iters=3000) == 300 and interval(iters=200_000) == 5000 and interval(iters=5) == 1
+    assert interval(iters=3000, keep_checkpoints=True) == 3000 // PROTOCOL_CHECKPOINTS == 150
+    assert interval(iters=3000, ckpt_every=7, keep_checkpoints=True) == 7
+    with pytest.raises(ValueError, match="ckpt-every"):
+        interval(iters=10, ckpt_every=0)

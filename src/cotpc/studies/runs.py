@@ -25,11 +25,7 @@ import torch
 
 from cotpc.policies import config_from_dict, config_to_dict, get_preset, load_policy
 from cotpc.training.precision import cpu_info
-from cotpc.training.train import TrainConfig, train
-
-# The paper reports the best of 3 runs over the last 20 checkpoints (ManiSkill2; the protocol of Diffusion Policy).
-# With --keep-checkpoints a run keeps this many, evenly spaced over its schedule.
-PROTOCOL_CHECKPOINTS = 20
+from cotpc.training.train import PROTOCOL_CHECKPOINTS, TrainConfig, train
 
 
 def stats(rates: list[float]) -> dict:
@@ -85,14 +81,12 @@ def _train_worker(config: TrainConfig) -> tuple[str, int, float | None]:
 
 def run_config(template: TrainConfig, run_dir: Path, policy: str, seed: int) -> TrainConfig:
     """One run of a study's grid: the study's ``template`` (data, schedule and every setting the runs share) with
-    this run's policy, seed and directory; resuming when a training state is there, ten validation points, and a
-    checkpoint every tenth of the run (every twentieth, kept, with ``keep_checkpoints``): a killed study loses at
-    most that much of one run."""
-    iters = template.iters
+    this run's policy, seed and directory; resuming when a training state is there, ten validation points, and
+    ``cotpc train``'s checkpoint interval (a tenth of the run, every twentieth kept with ``keep_checkpoints``): a
+    killed study loses at most that much of one run."""
     return dataclasses.replace(
         template, policy=policy, seed=seed, out=run_dir, resume=(run_dir / "training_state.pt").exists(),
-        progress=sys.stderr.isatty(), val_every=max(iters // 10, 1),
-        ckpt_every=max(iters // (PROTOCOL_CHECKPOINTS if template.keep_checkpoints else 10), 1),
+        progress=sys.stderr.isatty(), val_every=max(template.iters // 10, 1),
     )
 
 

@@ -88,8 +88,9 @@ class TrainConfig:
     """Fraction of the file's episodes held out for the validation loss (split by episode, seeded)."""
     val_every: int = 1000
     """Validation interval in iterations (also at the end)."""
-    ckpt_every: int = 5000
-    """Checkpoint interval in iterations (also at the end)."""
+    ckpt_every: Optional[int] = None
+    """Checkpoint interval in iterations (also at the end). Default: a tenth of the run (at most 5000), or a
+    twentieth with --keep-checkpoints (the paper's last-20-checkpoints protocol): a killed run loses at most that."""
     keep_checkpoints: bool = False
     """Also keep every periodic checkpoint under checkpoints/step_N/ (for last-k-checkpoint protocols)."""
     log_every: int = 100
@@ -140,6 +141,22 @@ def _lr_lambda(cfg, iters: int):
 # The validation metric that selects best/ and draws the learning curves: the predicted action's error at the
 # last window position, the one select_action uses (all-position losses reward the CoT target leak).
 SELECT_ON = "last_action_err"
+
+# The paper reports the best of 3 runs over the last 20 checkpoints (ManiSkill2; the protocol of Diffusion Policy).
+# With --keep-checkpoints a run keeps this many by default, evenly spaced over its schedule.
+PROTOCOL_CHECKPOINTS = 20
+
+
+def checkpoint_interval(config: TrainConfig) -> int:
+    """``--ckpt-every``, or its default: a tenth of the run (at most 5000 iterations), a twentieth when every
+    checkpoint is kept."""
+    if config.ckpt_every is not None:
+        if config.ckpt_every < 1:
+            raise ValueError(f"--ckpt-every must be >= 1, got {config.ckpt_every}")
+        return config.ckpt_every
+    if config.keep_checkpoints:
+        return max(config.iters // PROTOCOL_CHECKPOINTS, 1)
+    return max(min(config.iters // 10, 5000), 1)
 
 
 @torch.no_grad()
@@ -262,6 +279,7 @@ def train(config: TrainConfig) -> Path:
 
 
 def _train(config: TrainConfig) -> Path:
+    ckpt_every = checkpoint_interval(config)
     # --- processes and devices ---
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
@@ -443,7 +461,7 @@ def _train(config: TrainConfig) -> Path:
                 best_val = last_val[SELECT_ON]
                 save_checkpoint(run_dir / "best", model, {**meta, "step": step, "val": last_val})
             lap("validate")
-        if step % config.ckpt_every == 0 or step == end:
+        if step % ckpt_every == 0 or step == end:
             checkpoint(step, last_val)
             lap("checkpoint")
 

@@ -125,6 +125,9 @@ TRANSFORMER_PRESETS: dict[str, TransformerConfig] = {
     "cotpc": _COTPC,
     # The method without the hybrid mask's target leak: CoT token i sees only what is known at window index i.
     "cotpc-causal": dataclasses.replace(_COTPC, name="cotpc-causal", cot_attention="causal", random_cot_mask=False),
+    # CoTPC with the official code's action decoder (an MLP on the state token, MSE loss) instead of the paper's
+    # k-means centre + offset heads: the head DT has, with the CoT prompt and loss (docs/results/maze.md).
+    "cotpc-mse": dataclasses.replace(_COTPC, name="cotpc-mse", action_head="mse", offset_from="state"),
     # Ablations (paper Table 4), all configurations of the CoTPC model.
     "only-last": dataclasses.replace(_COTPC, name="only-last", cot_targets=("last",)),
     "only-next": dataclasses.replace(_COTPC, name="only-next", cot_targets=("next",)),
