@@ -29,6 +29,14 @@ def test_bench_act_reports_amortised_and_worst_steps(capsys):
     assert dp["ms"] < dp["ms_mean"] < dp["ms_max"]
 
 
+def test_bench_act_times_inference_variants_of_the_transformers_only(capsys):
+    cotpc_main(["bench", "act", "--policies", "bc", "cotpc", "--batch-sizes", "2", "--calls", "3", "--rounds", "2",
+                "--variants", "eager", "bf16", "--threads", "1", "--json"])
+    rows = json.loads(capsys.readouterr().out)["rows"]
+    assert sorted((r["policy"], r["variant"]) for r in rows) == [("bc", "eager"), ("cotpc", "bf16"), ("cotpc", "eager")]
+    assert all(r["batch"] == 2 and 0 < r["ms"] <= r["ms_max"] for r in rows)
+
+
 def test_bench_train_runs_every_family(capsys):
     cotpc_main(["bench", "train", "--policies", "bc", "dp", "dd", "--settings", "maniskill", "--rounds", "1",
                 "--iters", "1", "--warmup", "1", "--bf16", "False", "--threads", "1", "--json"])

@@ -44,6 +44,25 @@ def test_task_ids():
     assert not is_maniskill_env("cotpc/MovingMaze-v0") and not is_maniskill_env(None)
 
 
+def test_privileged_key_steps_follow_the_official_codes_rules():
+    """The official code's key states from per-step flags (flags[t] describe obs[t + 1]): the first state where a
+    flag holds; Stack Cube's second, the state before cube A first rests on cube B released; a flag that never
+    holds gives none."""
+    from cotpc.envs.maniskill.env import key_steps_from_flags
+
+    grasped = np.zeros(12, dtype=bool)
+    grasped[3:8] = True
+    on_b = np.zeros(12, dtype=bool)
+    on_b[6:] = True
+    assert key_steps_from_flags("StackCube-v1", np.stack([grasped, on_b], 1)).tolist() == [4, 8]
+    pre = np.zeros(12, dtype=bool)
+    pre[5:7] = True
+    assert key_steps_from_flags("PegInsertionSide-v1", np.stack([grasped, pre], 1)).tolist() == [4, 6]
+    assert key_steps_from_flags("PegInsertionSide-v1", np.stack([grasped, ~grasped & False], 1)).tolist() == [4]
+    with pytest.raises(ValueError, match="expected flags of shape"):
+        key_steps_from_flags("StackCube-v1", grasped[:, None])
+
+
 def test_maze_commands_never_import_maniskill():
     code = ("import sys; from cotpc.cli import demos, eval; import cotpc.envs, cotpc.envs.maze.rollout; "
             "print('mani_skill' in sys.modules, 'sapien' in sys.modules)")
@@ -109,6 +128,11 @@ def test_demos_follow_the_trajectory_format_with_disjoint_seeds(stack_demos):
             assert ep.success[-1]  # only demos that succeed after conversion are kept
             assert np.abs(ep.actions).max() <= 1 + 1e-6  # normalised delta actions
             assert 50 < ep.num_steps < 200
+            # the official code's privileged key states: cube A grasped, then released on cube B, in order
+            flags, keys = ep.extras["key_flags"], ep.extras["key_steps"]
+            assert flags.shape == (ep.num_steps, 2) and flags.dtype == bool and flags[-1, 1] and not flags[-1, 0]
+            assert len(keys) == 2 and 1 <= keys[0] < keys[1] <= ep.num_steps
+            assert flags[keys[0] - 1, 0] and not flags[: keys[0] - 1, 0].any()
 
 
 def test_demos_replay_to_success_through_the_eval_path(stack_demos):
@@ -142,12 +166,18 @@ def test_resume_extends_a_split_with_the_same_demos(stack_demos, tmp_path):
     assert len(new) == 3 and json.loads((out / "train.json").read_text())["cotpc_generation"]["attempted"] == 3
     for a, b in zip(old.episodes, new.episodes):
         assert a.reset_kwargs == b.reset_kwargs and np.array_equal(a.actions, b.actions)
+        assert np.array_equal(a.extras["key_steps"], b.extras["key_steps"])  # kept through the resume
+    assert all("key_steps" in ep.extras for ep in new.episodes)
 
 
 def test_segment_train_and_eval(stack_demos, tmp_path):
     from cotpc.data import load_trajectories
 
+    from cotpc.subskills.labeling import label_file
+
     train = stack_demos / "train.h5"
+    summary, _ = label_file(train, beta=0.05)  # scored against the privileged key states the demos carry
+    assert summary["true"] == 4 and 0 <= summary["precision"] <= 1 and 0 <= summary["recall"] <= 1
     cotpc_main(["segment", str(train)])  # the paper's beta 0.05 (mean cosine) for non-maze data
     for ep in load_trajectories(train).episodes:
         ends = ep.extras["subskill_ends"]
@@ -206,7 +236,7 @@ def test_reproduce_maniskill_end_to_end_and_resumes(stack_demos, tmp_path):
         assert summary["success_once"] * 100 == r[split]["mean"]
     assert json.loads((tmp_path / "results.json").read_text())["meta"]["paper"]["StackCube-v1"]["results"]["cotpc"] == 86.0
     report = (tmp_path / "report.md").read_text()
-    assert "## StackCube-v1" in report and "| cotpc |" in report and "is_cubeA_grasped" in report and (tmp_path / "learning_curves_StackCube-v1.png").exists()
+    assert "## StackCube-v1" in report and "| cotpc |" in report and "is_cubeA_grasped" in report and "privileged key states" in report and (tmp_path / "learning_curves_StackCube-v1.png").exists()
     # --keep-checkpoints: the kept checkpoints (--curve-every 2: every second, counted back from the last) scored
     # on the validation seeds (the schedule curve), and the paper's protocol on the test seeds, labelled as such.
     curve = r["val_curve"]["seed0"]

@@ -12,8 +12,9 @@ from __future__ import annotations
 import json
 import statistics
 import time
+import types
 from dataclasses import asdict, dataclass
-from typing import Optional
+from typing import Literal, Optional
 
 import numpy as np
 import torch
@@ -35,37 +36,69 @@ class Config:
     its amortised cost)."""
     threads: Optional[int] = None
     """torch CPU threads (default: torch's)."""
+    variants: tuple[Literal["eager", "compiled", "bf16"], ...] = ("eager",)
+    """Ways to run the transformer policies' inference, timed in alternating rounds (the ratio is the figure to
+    read on a shared machine): ``eager`` (what select_action runs), ``compiled`` (``torch.compile`` of the
+    network call, inductor with weight freezing; its compile time is reported), ``bf16`` (bf16 autocast)."""
+    rounds: int = 1
+    """Alternating rounds over the variants (each round times ``calls`` calls per variant; the median of all)."""
     json: bool = False
     """Print JSON instead of a table."""
 
 
-def bench(name: str, batch: int, calls: int) -> dict:
+def bench(name: str, batch: int, calls: int, variants: tuple[str, ...] = ("eager",), rounds: int = 1) -> list[dict]:
     cfg = get_preset(name, context=10, n_centres=128)
     torch.manual_seed(0)
-    pol = Policy(make_model(cfg, 43, 8, 200))
+    model = make_model(cfg, 43, 8, 200)
     obs = np.random.default_rng(0).normal(size=(batch, 43)).astype(np.float32)
-    for _ in range(cfg.window + 5):  # fill the context
-        pol.select_action(obs)
-    times = []
-    for _ in range(calls):
-        t = time.perf_counter()
-        pol.select_action(obs)
-        times.append(time.perf_counter() - t)
-    return {"policy": name, "batch": batch, "ms": round(1000 * statistics.median(times), 3),
-            "ms_mean": round(1000 * statistics.fmean(times), 3),
-            "ms_p90": round(1000 * float(np.percentile(times, 90)), 3), "ms_max": round(1000 * max(times), 3)}
+    runners, extra = {}, {}
+    for variant in variants:
+        pol = Policy(model)
+        if variant != "eager" and not hasattr(model, "predict_window"):
+            continue  # the variants concern the transformer family's network call
+        if variant == "compiled":
+            import torch._inductor.config as inductor_config  # only for this benchmark variant
+
+            inductor_config.freezing = True  # weights are constants at inference: fold and pre-pack them
+            # select_action reaches the network through model.predict_window only
+            pol.model = types.SimpleNamespace(predict_window=torch.compile(model.predict_window, dynamic=False))
+            t = time.perf_counter()
+            for _ in range(cfg.window + 5):
+                pol.select_action(obs)
+            extra[variant] = {"compile_s": round(time.perf_counter() - t, 1)}
+        step = pol.select_action
+        if variant == "bf16":
+            def step(o, pol=pol):
+                with torch.autocast("cpu", dtype=torch.bfloat16):
+                    return pol.select_action(o)
+        for _ in range(cfg.window + 5):  # fill the context
+            step(obs)
+        runners[variant] = step
+    times: dict[str, list[float]] = {v: [] for v in runners}
+    for _ in range(rounds):
+        for variant, step in runners.items():
+            for _ in range(calls):
+                t = time.perf_counter()
+                step(obs)
+                times[variant].append(time.perf_counter() - t)
+    return [{"policy": name, "variant": v, "batch": batch, "ms": round(1000 * statistics.median(ts), 3),
+             "ms_mean": round(1000 * statistics.fmean(ts), 3),
+             "ms_p90": round(1000 * float(np.percentile(ts, 90)), 3), "ms_max": round(1000 * max(ts), 3),
+             **extra.get(v, {})} for v, ts in times.items()]
 
 
 def main(argv: list[str], prog: str = "cotpc bench act") -> None:
     cfg = tyro.cli(Config, args=argv, prog=prog)
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
-    rows = [bench(p, b, cfg.calls) for p in cfg.policies for b in cfg.batch_sizes]
+    rows = [row for p in cfg.policies for b in cfg.batch_sizes
+            for row in bench(p, b, cfg.calls, cfg.variants, cfg.rounds)]
     if cfg.json:
         print(json.dumps({"config": asdict(cfg), "threads": torch.get_num_threads(), "rows": rows}, indent=1))
         return
     print(f"select_action, ManiSkill setting, {torch.get_num_threads()} threads")
-    print(f"{'policy':<12} {'batch':>5} {'mean ms':>9} {'median':>9} {'p90':>9} {'worst':>9}")
+    print(f"{'policy':<12} {'variant':<9} {'batch':>5} {'mean ms':>9} {'median':>9} {'p90':>9} {'worst':>9}")
     for r in rows:
-        print(f"{r['policy']:<12} {r['batch']:>5} {r['ms_mean']:>9.3f} {r['ms']:>9.3f} {r['ms_p90']:>9.3f} "
-              f"{r['ms_max']:>9.3f}")
+        print(f"{r['policy']:<12} {r['variant']:<9} {r['batch']:>5} {r['ms_mean']:>9.3f} {r['ms']:>9.3f} "
+              f"{r['ms_p90']:>9.3f} {r['ms_max']:>9.3f}"
+              + (f"  (compile {r['compile_s']} s)" if "compile_s" in r else ""))

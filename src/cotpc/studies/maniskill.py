@@ -88,6 +88,10 @@ def run(s: ManiSkillStudySettings) -> dict:
         beta, cost = (defaults.beta if s.beta is None else s.beta), defaults.cost
         print(f"[2/4] {env_id}: subskill discovery, {cost} cost, beta={beta}", flush=True)
         subskills[env_id], _ = label_file(demos / "train.h5", beta=beta, min_size=1, cost=cost)
+        if "precision" in subskills[env_id]:
+            sub = subskills[env_id]
+            print(f"[2/4] {env_id}: the official code's privileged key states within +-{sub['tol']} steps: "
+                  f"precision {sub['precision']:.3f}, recall {sub['recall']:.3f}", flush=True)
         horizon = s.horizon or HORIZONS[env_id]
         evaluations = {split: Evaluation(
             cached=functools.partial(_cached_eval, split=split, horizon=horizon,
@@ -268,7 +272,10 @@ def write_report(results: dict, out: Path) -> Path:
             "",
             f"{meta['demos'][env_id]} training demos, horizon {meta['horizons'][env_id]}; subskills: "
             f"{sub.get('cost')} cost, beta {sub.get('beta')}, {sub.get('subskills_mean', float('nan')):.2f} per demo "
-            f"(mean length {sub.get('length_mean', float('nan')):.1f} actions).",
+            f"(mean length {sub.get('length_mean', float('nan')):.1f} actions)." + (
+                f" Against the official code's privileged key states (within ±{sub['tol']} steps): precision "
+                f"{sub['precision']:.3f}, recall {sub['recall']:.3f}, F1 {sub['f1']:.3f} ({sub['matched']} of "
+                f"{sub['true']} key states found, {sub['predicted']} boundaries predicted)." if "precision" in sub else ""),
             "",
             f"| policy | seen once | seen at end | unseen once | unseen at end | paper ({paper['split']}) "
             "| train min (seed 0) |",

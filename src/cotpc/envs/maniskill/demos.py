@@ -33,7 +33,10 @@ import torch
 from tqdm import tqdm
 
 from cotpc.data.trajectories import Episode, TrajectoryFormatError, TrajectorySet, load_trajectories, save_trajectories
-from cotpc.envs.maniskill.env import CONTROL_MODES, HORIZONS, SEEDS, flat_obs, import_maniskill, make_env
+from cotpc.envs.maniskill.env import (
+    CONTROL_MODES, HORIZONS, KEY_STATE_FLAGS, SEEDS, flat_obs, import_maniskill, key_state_flags, key_steps_from_flags,
+    make_env,
+)
 
 PLAN_CONTROL_MODE = "pd_joint_pos"
 PLAN_STEP_LIMIT = 1000  # no time limit interferes with planning or conversion (planner demos are ~100-300 steps)
@@ -47,15 +50,17 @@ def planner_solutions() -> dict:
 
 
 class Recorder(gym.Wrapper):
-    """Records the actions passed to step(), the flat observations and info['success'] since reset()."""
+    """Records the actions passed to step(), the flat observations, info['success'] and (with ``key_flags_of``,
+    an env id) the task's privileged key-state flags since reset()."""
 
-    def __init__(self, env, record_obs: bool):
+    def __init__(self, env, record_obs: bool, key_flags_of: str | None = None):
         super().__init__(env)
-        self.record_obs = record_obs
+        self.record_obs, self.key_flags_of = record_obs, key_flags_of
 
     def reset(self, **kwargs):
         obs, info = self.env.reset(**kwargs)
         self.obs, self.actions, self.success = [flat_obs(obs)[0]] if self.record_obs else [], [], []
+        self.key_flags = []
         return obs, info
 
     def step(self, action):
@@ -65,6 +70,8 @@ class Recorder(gym.Wrapper):
         if self.record_obs:
             self.obs.append(flat_obs(obs)[0])
         self.success.append(bool(np.asarray(_cpu(info["success"])).reshape(-1)[0]))
+        if self.key_flags_of:
+            self.key_flags.append(list(key_state_flags(self.key_flags_of, self.env, info).values()))
         return obs, reward, terminated, truncated, info
 
 
@@ -79,7 +86,8 @@ class _Worker:
         self.solve = solutions[env_id]
         self.plan_env = Recorder(make_env(env_id, PLAN_CONTROL_MODE, obs_mode="none", max_episode_steps=PLAN_STEP_LIMIT), False)
         self.ori_env = make_env(env_id, PLAN_CONTROL_MODE, obs_mode="none", max_episode_steps=PLAN_STEP_LIMIT)
-        self.env = Recorder(make_env(env_id, control_mode, obs_mode="state", max_episode_steps=PLAN_STEP_LIMIT), True)
+        self.env = Recorder(make_env(env_id, control_mode, obs_mode="state", max_episode_steps=PLAN_STEP_LIMIT), True,
+                            key_flags_of=env_id)
 
     def run(self, seed: int) -> dict[str, Any]:
         """Plan and convert one seed: a dict with ``ok`` and, when ok, obs/actions/success and timings."""
@@ -111,16 +119,37 @@ class _Worker:
         t2 = time.perf_counter()
         if not self.env.success or not self.env.success[-1]:
             return {"seed": seed, "ok": False, "reason": "converted actions fail", "plan_s": t1 - t0}
+        n_flags = len(KEY_STATE_FLAGS.get(self.env_id, ()))
+        key_flags = np.array(self.env.key_flags, dtype=bool).reshape(len(self.env.actions), n_flags)
         return {
             "seed": seed,
             "ok": True,
             "obs": np.stack(self.env.obs).astype(np.float32),
             "actions": np.stack(self.env.actions).astype(np.float32),
             "success": np.array(self.env.success, dtype=bool),
+            "key_flags": key_flags,
+            "key_steps": key_steps_from_flags(self.env_id, key_flags) if n_flags else None,
             "plan_steps": len(plan_actions),
             "plan_s": t1 - t0,
             "convert_s": t2 - t1,
         }
+
+
+def _key_state_extras(env_id: str, r: dict) -> dict:
+    """The privileged key-state flags (per step) and key steps of a demo, as Episode extras (none for a task
+    without :data:`KEY_STATE_FLAGS`)."""
+    names = KEY_STATE_FLAGS.get(env_id)
+    if not names:
+        return {}
+    return {
+        "extras": {"key_flags": r["key_flags"], "key_steps": r["key_steps"]},
+        "extra_attrs": {
+            "key_flags": {"names": list(names), "description": "privileged key-state flags per step (of the state "
+                          "after each action), as the official CoTPC code's patched environments report them"},
+            "key_steps": {"description": "privileged key states (state indices) by the official CoTPC code's "
+                          "rules (cotpc.envs.maniskill.env.key_steps_from_flags); the final state is implied"},
+        },
+    }
 
 
 def _cpu(x):
@@ -152,7 +181,7 @@ def _load_progress(paths: list[Path], key: dict) -> tuple[list[Episode], dict] |
         if not path.with_suffix(".h5").exists():
             continue
         try:
-            data = load_trajectories(path, extras=())
+            data = load_trajectories(path)  # with the extras (key-state flags and steps): they are saved again
         except TrajectoryFormatError:
             continue
         gen = data.meta.get("cotpc_generation", {})
@@ -237,7 +266,7 @@ def generate_split(
         if r["ok"]:
             episodes.append(Episode(
                 obs=r["obs"], actions=r["actions"], success=r["success"], episode_id=len(episodes),
-                reset_kwargs={"seed": r["seed"]}, control_mode=control_mode,
+                reset_kwargs={"seed": r["seed"]}, control_mode=control_mode, **_key_state_extras(env_id, r),
             ))
         else:
             failed.append(r["seed"])

@@ -185,3 +185,53 @@ def flat_obs(obs) -> np.ndarray:
         obs = obs.detach().cpu().numpy()
     obs = np.asarray(obs, dtype=np.float32)
     return obs[None] if obs.ndim == 1 else obs
+
+
+# --- privileged key states: the official CoTPC code's chain of thought --------------------------------------
+# The official code (SeanJia/CoTPC, src/data.py) reads its key states from flags that its patched ManiSkill2
+# environments report each step. We compute the same flags from the simulator while a demo is recorded (no
+# patch) and store them beside the demo, so discovered subskills can be scored against them and CoTPC trained
+# on them (`cotpc segment --privileged`). The flags of step t are about the state after action t, obs[t + 1].
+KEY_STATE_FLAGS = {
+    "StackCube-v1": ("is_cubeA_grasped", "is_cubeA_on_cubeB"),
+    "PegInsertionSide-v1": ("is_grasped", "pre_inserted"),
+    "PickCube-v1": ("is_grasped",),
+}
+
+
+def _flag(x) -> bool:
+    return bool(np.asarray(x.detach().cpu() if hasattr(x, "detach") else x).reshape(-1)[0])
+
+
+def key_state_flags(env_id: str, env, info: dict) -> dict[str, bool]:
+    """This step's key-state flags of ``env_id`` (:data:`KEY_STATE_FLAGS`; none for other tasks), from ``info``
+    or, for Peg Insertion, from the simulator as the official code's patch and ManiSkill3's dense reward define
+    them: grasped with the gripper at most 20 degrees off, and pre-inserted when the peg and its head are both
+    within 1 cm of the hole's axis (in the goal frame's y-z plane) while grasped."""
+    if env_id == "PegInsertionSide-v1":
+        task = env.unwrapped
+        grasped = task.agent.is_grasping(task.peg, max_angle=20)
+        head = (task.goal_pose.inv() * task.peg_head_pose).p[:, 1:]
+        centre = (task.goal_pose.inv() * task.peg.pose).p[:, 1:]
+        lined_up = (head.norm(dim=1) < 0.01) & (centre.norm(dim=1) < 0.01)
+        return {"is_grasped": _flag(grasped), "pre_inserted": _flag(grasped & lined_up)}
+    return {name: _flag(info[name]) for name in KEY_STATE_FLAGS.get(env_id, ())}
+
+
+def key_steps_from_flags(env_id: str, flags: np.ndarray) -> np.ndarray:
+    """The privileged key steps (state indices, ascending) of one demo from its per-step ``flags`` (N, F), F the
+    flags of :data:`KEY_STATE_FLAGS` in order, by the official code's rules: the first state in which each flag
+    holds, except Stack Cube's second key state, the state *before* cube A first rests on cube B released (its
+    "right before" rule). A flag that never holds gives no key step (the final state is always a key state and
+    is not listed)."""
+    flags = np.asarray(flags, dtype=bool)
+    names = KEY_STATE_FLAGS.get(env_id, ())
+    if flags.ndim != 2 or flags.shape[1] != len(names):
+        raise ValueError(f"{env_id}: expected flags of shape (steps, {len(names)}) for {names}, got {flags.shape}")
+    events = [flags[:, i] for i in range(len(names))]
+    shift = [1] * len(names)  # flags[t] describe obs[t + 1]
+    if env_id == "StackCube-v1":
+        events[1] = flags[:, 1] & ~flags[:, 0]  # on cube B and no longer grasped
+        shift[1] = 0
+    steps = [int(np.argmax(e)) + s for e, s in zip(events, shift) if e.any()]
+    return np.unique(np.clip(steps, 1, len(flags))).astype(np.int64)
