@@ -1,5 +1,6 @@
 """The training loop: run directory contents, exact resume, clear errors, bf16 tracking fp32, the CLI."""
 
+import contextlib
 import json
 from pathlib import Path
 
@@ -192,3 +193,26 @@ def test_checkpoint_interval_defaults_follow_the_run_length():
     assert interval(iters=3000, ckpt_every=7, keep_checkpoints=True) == 7
     with pytest.raises(ValueError, match="ckpt-every"):
         interval(iters=10, ckpt_every=0)
+
+
+def test_validation_does_not_depend_on_the_chunk_size(data):
+    """evaluate_loss averages the last-position metrics (what selects checkpoints) over every window whatever the
+    chunk (the CPU default is smaller than a GPU's); the all-position terms are means of per-chunk masked means,
+    so they move slightly with it."""
+    from cotpc.data import load_trajectories
+    from cotpc.data.dataset import Stats, WindowDataset
+    from cotpc.policies import get_preset, make_model
+    from cotpc.training.train import evaluate_loss
+
+    trajs = load_trajectories(data)
+    cfg = get_preset("cotpc", context=4, d_model=32, n_heads=4, n_layers=2, n_centres=8)
+    stats = Stats.of(np.concatenate([ep.obs[:-1] for ep in trajs.episodes]),
+                     np.concatenate([ep.actions for ep in trajs.episodes]))
+    ds = WindowDataset(trajs, [0, 1, 2], cfg.window, stats, cfg.cot_targets, 0, "cpu", str(data), 0, 0)
+    torch.manual_seed(0)
+    model = make_model(cfg, trajs.obs_dim, trajs.action_dim, 20)
+    default, small = (evaluate_loss(model, ds, contextlib.nullcontext),
+                      evaluate_loss(model, ds, contextlib.nullcontext, chunk=7))
+    assert len(ds) > 7 and default.keys() == small.keys() and "last_action_err" in default
+    for k in default:
+        assert default[k] == pytest.approx(small[k], rel=1e-5 if k.startswith("last_") else 1e-2, abs=1e-7), k

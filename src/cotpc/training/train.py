@@ -160,8 +160,10 @@ def checkpoint_interval(config: TrainConfig) -> int:
 
 
 @torch.no_grad()
-def evaluate_loss(model: nn.Module, ds: WindowDataset, autocast, chunk: int = 1024) -> dict[str, float]:
-    """Validation metrics over every window of ``ds`` (no random CoT mask, dropout off), in two regimes:
+def evaluate_loss(model: nn.Module, ds: WindowDataset, autocast, chunk: int | None = None) -> dict[str, float]:
+    """Validation metrics over every window of ``ds`` (no random CoT mask, dropout off), in ``chunk`` windows
+    at a time (default: 256 on a CPU, where the activations of larger chunks fall out of the cache and a pass
+    took twice as long at 1024, measured in docs/performance.md; 1024 on an accelerator), in two regimes:
 
     - ``last_*``: at the last window position, as at inference (:meth:`inference_metrics`): what to select on;
     - ``all_*``: the training loss terms averaged over all window positions (where CoT tokens can see the
@@ -169,6 +171,7 @@ def evaluate_loss(model: nn.Module, ds: WindowDataset, autocast, chunk: int = 10
     was_training = model.training
     model.eval()
     sums: dict[str, float] = {}
+    chunk = chunk or (256 if torch.device(ds.device).type == "cpu" else 1024)
     for start in range(0, len(ds), chunk):
         ends = torch.arange(start, min(start + chunk, len(ds)), device=ds.device)
         batch = ds.windows(ends)
