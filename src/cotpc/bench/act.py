@@ -57,11 +57,10 @@ def bench(name: str, batch: int, calls: int, variants: tuple[str, ...] = ("eager
         if variant != "eager" and not hasattr(model, "predict_window"):
             continue  # the variants concern the transformer family's network call
         if variant == "compiled":
-            import torch._inductor.config as inductor_config  # only for this benchmark variant
-
-            inductor_config.freezing = True  # weights are constants at inference: fold and pre-pack them
-            # select_action reaches the network through model.predict_window only
-            pol.model = types.SimpleNamespace(predict_window=torch.compile(model.predict_window, dynamic=False))
+            # select_action reaches the network through model.predict_window only; freezing: the weights are
+            # constants at inference, so inductor folds and pre-packs them
+            compiled = torch.compile(model.predict_window, dynamic=False, options={"freezing": True})
+            pol.model = types.SimpleNamespace(predict_window=compiled)
             t = time.perf_counter()
             for _ in range(cfg.window + 5):
                 pol.select_action(obs)
