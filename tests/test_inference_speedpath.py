@@ -39,6 +39,8 @@ def reference_predict(model, batch):
     valid = batch.get("valid")
     if cfg.action_head == "mse":
         return model.action_decoder(model._select(x, cfg.centre_from, valid)[:, -1])
+    if cfg.action_head == "gmm":
+        return model.mixture_mode(model.mixture_head(model._select(x, cfg.centre_from, valid)[:, -1]))
     c = model.centre_head(model._select(x, cfg.centre_from, valid)[:, -1]).argmax(-1)
     offsets = model.offset_head(model._select(x, cfg.offset_from, valid)[:, -1]).view(-1, cfg.n_centres, P)
     return model.centres[c] + offsets[torch.arange(len(c)), c]

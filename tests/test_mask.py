@@ -154,6 +154,8 @@ def _per_position_predictions(model, batch):
     cfg, valid = model.cfg, batch["valid"]
     if cfg.action_head == "mse":
         return model.action_decoder(model._select(x, cfg.centre_from, valid))
+    if cfg.action_head == "gmm":
+        return model.mixture_head(model._select(x, cfg.centre_from, valid))
     return torch.cat([model.centre_head(model._select(x, cfg.centre_from, valid)),
                       model.offset_head(model._select(x, cfg.offset_from, valid))], dim=-1)
 

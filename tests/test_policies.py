@@ -142,6 +142,8 @@ def _predict_from_all_tokens(model, batch):
     valid = batch.get("valid")
     if cfg.action_head == "mse":
         return model.action_decoder(model._select(x, cfg.centre_from, valid)[:, -1])
+    if cfg.action_head == "gmm":
+        return model.mixture_mode(model.mixture_head(model._select(x, cfg.centre_from, valid)[:, -1]))
     logits = model.centre_head(model._select(x, cfg.centre_from, valid)[:, -1])
     offsets = model.offset_head(model._select(x, cfg.offset_from, valid)[:, -1]).view(-1, cfg.n_centres, P)
     c = logits.argmax(-1)

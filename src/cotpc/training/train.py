@@ -194,7 +194,7 @@ def loss_gradient_shares(model: nn.Module, batch: dict, autocast) -> dict[str, f
     trunk = [p for p in gpt.blocks.parameters() if p.requires_grad]
     with autocast():
         _, m = model.loss(batch)
-    weights = {"ce": 1.0, "offset": cfg.offset_weight, "cot": cfg.cot_weight, "mse": 1.0}
+    weights = {"ce": 1.0, "offset": cfg.offset_weight, "cot": cfg.cot_weight, "mse": 1.0, "nll": 1.0}
     terms = {k: weights[k] * m[k] for k in weights if k in m}
     norms = {}
     for i, (k, term) in enumerate(terms.items()):

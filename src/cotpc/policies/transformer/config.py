@@ -50,14 +50,18 @@ class TransformerConfig(BaseConfig):
     there, like every other token, so no prediction in training sees its target (leak-free)."""
 
     # --- heads and losses ---
-    action_head: Literal["mse", "bet"] = "bet"
-    """``mse``: continuous MLP decoder (DT, BC); ``bet``: k-means centre classifier + per-centre offsets."""
+    action_head: Literal["mse", "bet", "gmm"] = "bet"
+    """``mse``: continuous MLP decoder (DT, BC); ``bet``: k-means centre classifier + per-centre offsets;
+    ``gmm``: a mixture of diagonal Gaussians trained by likelihood, acting with the mean of its most likely
+    component (continuous like ``mse``, multi-modal like ``bet``; robomimic's GMM policy head)."""
     centre_from: Source = "state"
     """Token features the centre classifier (or the MSE decoder) reads for timestep i."""
     offset_from: Source = "state"
     """Token features the offset regressor reads for timestep i (``cot``: the i-th CoT token)."""
     n_centres: int = 128
     """k-means clusters K of the normalised actions (default: the task's, cotpc.envs.spec.task_defaults)."""
+    n_modes: int = 5
+    """Gaussian components of the ``gmm`` head (robomimic's default)."""
     offset_weight: float = 100.0
     """Weight of the offset MSE relative to the centre cross-entropy (paper: 100)."""
     cot_targets: tuple[CotTarget, ...] = ()  # type: ignore[assignment]  (a field here, a property in BaseConfig)
@@ -92,6 +96,8 @@ class TransformerConfig(BaseConfig):
     def validate(self) -> None:
         if self.d_model % self.n_heads:
             raise ValueError(f"d_model={self.d_model} must be divisible by n_heads={self.n_heads}")
+        if self.action_head == "gmm" and self.n_modes < 1:
+            raise ValueError(f"the gmm head needs n_modes >= 1, got {self.n_modes}")
         if self.context < 1:
             raise ValueError("context must be >= 1")
         n_cot = self.n_cot_tokens
@@ -128,6 +134,11 @@ TRANSFORMER_PRESETS: dict[str, TransformerConfig] = {
     # CoTPC with the official code's action decoder (an MLP on the state token, MSE loss) instead of the paper's
     # k-means centre + offset heads: the head DT has, with the CoT prompt and loss (docs/results/maze.md).
     "cotpc-mse": dataclasses.replace(_COTPC, name="cotpc-mse", action_head="mse", offset_from="state"),
+    # CoTPC with a continuous multi-modal head: the mixture keeps the modes the MSE head averages (a maze action
+    # component is +-[1.5, 4]: the MSE head's mean of the two signs lands near 0) without k-means' quantisation.
+    "cotpc-gmm": dataclasses.replace(_COTPC, name="cotpc-gmm", action_head="gmm", offset_from="state"),
+    # Its control: DT with the same head, so a gain of cotpc-gmm over BeT can be split between head and CoT.
+    "dt-gmm": TransformerConfig(name="dt-gmm", action_head="gmm"),
     # Ablations (paper Table 4), all configurations of the CoTPC model.
     "only-last": dataclasses.replace(_COTPC, name="only-last", cot_targets=("last",)),
     "only-next": dataclasses.replace(_COTPC, name="only-next", cot_targets=("next",)),

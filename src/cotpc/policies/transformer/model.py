@@ -11,6 +11,8 @@ A training batch is a dict of
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
@@ -59,6 +61,9 @@ def _dense_offsets_pay(x: torch.Tensor, n_centres: int) -> bool:
     return fast and n_centres <= x.shape[-1]
 
 
+GMM_MIN_STD = 0.01  # floor of the gmm head's standard deviations (normalised units, robomimic's): no collapse
+
+
 def _masked_mean(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     w = valid.to(x.dtype)
     return (x * w).sum() / w.sum().clamp_min(1.0)
@@ -84,6 +89,8 @@ class TransformerPolicy(nn.Module):
             self.centre_head = mlp([d, h, h, cfg.n_centres])
             self.offset_head = mlp([d, h, h, cfg.n_centres * p])
             self.register_buffer("centres", torch.zeros(cfg.n_centres, p))
+        elif cfg.action_head == "gmm":  # per mode: a logit, a mean (p) and a standard deviation (p)
+            self.mixture_head = mlp([d, h, h, cfg.n_modes * (1 + 2 * p)])
         else:
             self.action_decoder = mlp([d, h, h, p])
         self.apply(_init_weights)
@@ -175,6 +182,27 @@ class TransformerPolicy(nn.Module):
         off = RowGatheredLinear.apply(hidden.flatten(0, 1), last.weight, last.bias, centre.flatten(), self.action_dim)
         return off.view(*centre.shape, self.action_dim)
 
+    def mixture(self, raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The gmm head's output (..., M (1 + 2p)) as mode logits (..., M), means and standard deviations
+        (..., M, p), in fp32."""
+        m, p = self.cfg.n_modes, self.action_dim
+        logits, means, stds = raw.float().split([m, m * p, m * p], dim=-1)
+        return logits, means.unflatten(-1, (m, p)), F.softplus(stds.unflatten(-1, (m, p))) + GMM_MIN_STD
+
+    def mixture_nll(self, raw: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+        """Negative log-likelihood (...) of the (normalised) target actions (..., p) under the gmm head's output."""
+        logits, means, stds = self.mixture(raw)
+        z = (target.float()[..., None, :] - means) / stds
+        log_component = (-0.5 * z**2 - stds.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
+        return -torch.logsumexp(F.log_softmax(logits, dim=-1) + log_component, dim=-1)
+
+    def mixture_mode(self, raw: torch.Tensor) -> torch.Tensor:
+        """The action the gmm head acts with: the mean of its most likely mode (deterministic, so rollouts are
+        reproducible and no sampling noise enters evaluation). (..., M (1 + 2p)) -> (..., p)."""
+        logits, means, _ = self.mixture(raw)
+        k = logits.argmax(-1)[..., None, None].expand(*logits.shape[:-1], 1, self.action_dim)
+        return means.gather(-2, k)[..., 0, :]
+
     # --- training ---------------------------------------------------------------------------------------------
     def forward(self, batch: dict):
         return self.loss(batch)
@@ -204,6 +232,9 @@ class TransformerPolicy(nn.Module):
             pred = self.action_decoder(self._select(x, cfg.centre_from, valid)).float()
             bc = _masked_mean(((pred - target) ** 2).mean(-1), valid)
             metrics["mse"] = bc
+        elif cfg.action_head == "gmm":
+            bc = _masked_mean(self.mixture_nll(self.mixture_head(self._select(x, cfg.centre_from, valid)), target), valid)
+            metrics["nll"] = bc
         else:
             logits = self.centre_head(self._select(x, cfg.centre_from, valid)).float()  # (B,T,K)
             true_c = torch.cdist(target, self.centres[None].expand(target.shape[0], -1, -1)).argmin(-1)  # (B,T)
@@ -290,6 +321,10 @@ class TransformerPolicy(nn.Module):
         if cfg.action_head == "mse":
             pred = self.action_decoder(feats[cfg.centre_from]).float()
             out["bc"] = ((pred - target) ** 2).mean()
+        elif cfg.action_head == "gmm":
+            raw = self.mixture_head(feats[cfg.centre_from])
+            out["bc"] = self.mixture_nll(raw, target).mean()
+            pred = self.mixture_mode(raw)
         else:
             logits = self.centre_head(feats[cfg.centre_from]).float()
             true_c = torch.cdist(target[None], self.centres[None])[0].argmin(-1)
@@ -316,10 +351,13 @@ class TransformerPolicy(nn.Module):
         return self._act(self._infer_features(states, actions, timesteps, n_prev=n_prev))
 
     def _act(self, feats: dict) -> torch.Tensor:
-        """The action heads at inference: the MSE decoder, or the arg-max centre plus that centre's offset."""
+        """The action heads at inference: the MSE decoder, the gmm head's most likely mean, or the arg-max centre
+        plus that centre's offset."""
         cfg = self.cfg
         if cfg.action_head == "mse":
             return run_mlp(self.action_decoder, feats[cfg.centre_from]).float()
+        if cfg.action_head == "gmm":
+            return self.mixture_mode(run_mlp(self.mixture_head, feats[cfg.centre_from]))
         c = run_mlp(self.centre_head, feats[cfg.centre_from]).float().argmax(-1)
         # the offset of centre c only (RowGatheredLinear's forward without the autograd bookkeeping)
         hidden = run_mlp(self.offset_head, feats[cfg.offset_from], n_layers=len(self.offset_head) - 1).float()

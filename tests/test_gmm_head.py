@@ -1,0 +1,47 @@
+"""The gmm action head: its likelihood is the mixture's, and it keeps the modes an MSE head averages."""
+
+import torch
+
+from cotpc.policies import get_preset, make_model
+
+Q, P, T = 3, 2, 2
+TINY = {"context": T, "d_model": 32, "n_heads": 4, "n_layers": 1, "hidden": 64}
+
+
+def test_mixture_nll_is_the_mixture_log_likelihood():
+    torch.manual_seed(0)
+    model = make_model(get_preset("dt-gmm", n_modes=3, **TINY), Q, P, max_timestep=10)
+    raw, target = torch.randn(5, 3 * (1 + 2 * P)), torch.randn(5, P)
+    logits, means, stds = model.mixture(raw)
+    reference = torch.distributions.MixtureSameFamily(
+        torch.distributions.Categorical(logits=logits),
+        torch.distributions.Independent(torch.distributions.Normal(means, stds), 1))
+    assert torch.allclose(model.mixture_nll(raw, target), -reference.log_prob(target), atol=1e-5)
+    # the action is the mean of the most likely mode
+    k = logits.argmax(-1)
+    assert torch.equal(model.mixture_mode(raw), means[torch.arange(5), k])
+
+
+def _fit(name: str) -> torch.Tensor:
+    """Train on one state whose action is (+2, +2) or (-2, -2) with equal chance (a one-step window: no past
+    action tells which); the predicted action."""
+    torch.manual_seed(0)
+    T = 1
+    model = make_model(get_preset(name, **{**TINY, "context": T}), Q, P, max_timestep=10)
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    B = 64
+    sign = torch.where(torch.arange(B) % 2 == 0, 1.0, -1.0)
+    batch = {"states": torch.zeros(B, T, Q), "actions": 2.0 * sign[:, None, None].expand(B, T, P).clone(),
+             "timesteps": torch.arange(T).expand(B, T), "valid": torch.ones(B, T, dtype=torch.bool)}
+    for _ in range(300):
+        opt.zero_grad()
+        model.loss(batch)[0].backward()
+        opt.step()
+    return model.eval().predict(batch)[0]
+
+
+def test_gmm_head_keeps_a_mode_where_mse_averages_them():
+    gmm, mse = _fit("dt-gmm"), _fit("dt")
+    assert mse.abs().max() < 0.5  # the average of the two modes: an action no demo takes
+    assert torch.allclose(gmm.abs(), torch.full((P,), 2.0), atol=0.1)  # one of the demos' actions
+    assert torch.sign(gmm[0]) == torch.sign(gmm[1])  # and both components from the same mode
