@@ -45,3 +45,40 @@ def test_gmm_head_keeps_a_mode_where_mse_averages_them():
     assert mse.abs().max() < 0.5  # the average of the two modes: an action no demo takes
     assert torch.allclose(gmm.abs(), torch.full((P,), 2.0), atol=0.1)  # one of the demos' actions
     assert torch.sign(gmm[0]) == torch.sign(gmm[1])  # and both components from the same mode
+
+
+def test_mean_action_rule_acts_with_the_expected_action():
+    """``action_rule="mean"``: the probability-weighted sum of every centre plus its offset (k-means head), or the
+    mixture mean (gmm); ``mode`` (the default) is unchanged."""
+    torch.manual_seed(0)
+    B = 4
+    batch = {"states": torch.randn(B, T, Q), "actions": torch.randn(B, T, P), "timesteps": torch.arange(T).expand(B, T)}
+    for name in ("bet", "cotpc", "dt-gmm"):
+        cfg = get_preset(name, n_centres=6, **TINY)
+        model = make_model(cfg, Q, P, max_timestep=10).eval()
+        with torch.no_grad():
+            for prm in model.parameters():
+                prm.add_(0.1 * torch.randn_like(prm))
+            if cfg.action_head == "bet":
+                model.centres.normal_()
+            x, _ = model._features(batch, train=False)
+            centre_feats = model._select(x, cfg.centre_from, None)[:, -1]
+            if cfg.action_head == "bet":
+                probs = model.centre_head(centre_feats).softmax(-1)
+                off = model.offset_head(model._select(x, cfg.offset_from, None)[:, -1]).view(B, -1, P)
+                expected = ((model.centres + off) * probs[..., None]).sum(1)
+            else:
+                logits, means, _ = model.mixture(model.mixture_head(centre_feats))
+                expected = (logits.softmax(-1)[..., None] * means).sum(1)
+            mode = model.predict(batch)
+            model.cfg = cfg.replace(action_rule="mean")
+            assert torch.allclose(model.predict(batch), expected, atol=1e-5), name
+            assert not torch.allclose(mode, expected, atol=1e-3), name  # the rule changes the action
+
+
+def test_eval_files_of_other_action_rules_never_replace_the_runs_own(tmp_path):
+    from cotpc.evaluation.request import EvalRequest
+
+    assert EvalRequest(run=tmp_path).variant_suffix() == ""
+    assert EvalRequest(run=tmp_path, action_rule="mode").variant_suffix() == ""
+    assert EvalRequest(run=tmp_path, action_rule="mean", sampler_steps=5).variant_suffix() == "_steps5_mean"

@@ -56,6 +56,16 @@ class EvalRequest:
     """Denoising steps at inference, for the diffusion policies (dp, dd): DDIM with this many steps instead of
     the run's ``inference_steps`` (fewer: faster control, maybe lower success)."""
 
+    action_rule: Optional[Literal["mode", "mean"]] = None
+    """How a multi-modal transformer head (bet, cotpc, gmm presets) acts: ``mode`` (the run's default: the arg-max
+    centre plus its offset, or the most likely Gaussian's mean) or ``mean`` (the expected action under the head's
+    distribution). The evaluation file gets an ``_mean`` suffix, so it never replaces the run's own."""
+
+    def variant_suffix(self) -> str:
+        """File-name suffix of an evaluation with non-default inference settings (never overwrite the run's own)."""
+        return (f"_steps{self.sampler_steps}" if self.sampler_steps else "") + (
+            f"_{self.action_rule}" if self.action_rule not in (None, "mode") else "")
+
     def demos_and_weights(self, info: dict) -> tuple[Path, Path]:
         """The demo directory (given, or that of the run's training data) and the checkpoint to evaluate."""
         demos = self.demos
@@ -67,10 +77,17 @@ class EvalRequest:
         return demos, (self.run if self.checkpoint == "last" else self.run / "best")
 
 
-def load_for_eval(run_dir: str | Path, device: str = "cpu", sampler_steps: Optional[int] = None):
+def load_for_eval(run_dir: str | Path, device: str = "cpu", sampler_steps: Optional[int] = None,
+                  action_rule: Optional[str] = None):
     """:func:`cotpc.load_policy`, with the diffusion sampler's step count replaced when ``sampler_steps`` is set
-    (module level, so a process pool can pickle a ``functools.partial`` of it)."""
+    and the transformer head's ``action_rule`` when that is (module level, so a process pool can pickle a
+    ``functools.partial`` of it)."""
     policy = load_policy(run_dir, device=device)
+    if action_rule is not None:
+        cfg = policy.model.cfg
+        if not hasattr(cfg, "action_rule"):
+            raise SystemExit(f"cotpc eval: --action-rule is for the transformer policies; {run_dir} is {cfg.name!r}")
+        policy.model.cfg = cfg.replace(action_rule=action_rule)
     if sampler_steps is not None:
         cfg = policy.model.cfg
         if not hasattr(cfg, "inference_steps"):

@@ -170,13 +170,13 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
     if req.rules not in (None, "paper"):
         raise SystemExit(f"cotpc eval: {env_id} has no rule variants (--rules {req.rules})")
     demos, weights = req.demos_and_weights(info)
-    policy = load_for_eval(weights, req.device, req.sampler_steps)
+    policy = load_for_eval(weights, req.device, req.sampler_steps, req.action_rule)
     result = evaluate(policy, demos, req.split, req.episodes, req.horizon, videos=req.num_videos if req.video else 0)
     if req.video:
         for path in write_videos(result, req.video):
             print(f"wrote {path}")
     result.meta.update({"run": str(req.run), "checkpoint": req.checkpoint, "demos": str(demos)})
-    out = req.out or req.run / f"eval_{req.split}.json"
+    out = req.out or req.run / f"eval_{req.split}{req.variant_suffix()}.json"
     result.to_json(out)
     s = result.summary()
     print(f"{req.run} [{req.split}] success {100 * s['success_rate']:.1f}% (95% CI {100 * s['ci95'][0]:.1f}-"

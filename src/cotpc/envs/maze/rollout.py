@@ -188,13 +188,12 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
         raise SystemExit(f"cotpc eval: unknown Moving Maze rules {rules_name!r}; expected one of {', '.join(RULES)}")
     rules = RULES[rules_name]
     demos, weights = req.demos_and_weights(info)
-    policy = load_for_eval(weights, req.device, req.sampler_steps)
+    policy = load_for_eval(weights, req.device, req.sampler_steps, req.action_rule)
     result = evaluate(policy, demos, req.split, req.episodes, req.video, req.num_videos, rules.deadly_gaps,
                       rules.min_action)
     result.meta.update({"run": str(req.run), "checkpoint": req.checkpoint, "demos": str(demos),
-                        "sampler_steps": req.sampler_steps})
-    steps = f"_steps{req.sampler_steps}" if req.sampler_steps else ""  # never overwrite the run's own evaluation
-    out = req.out or req.run / f"eval_{eval_name(req.split, rules.deadly_gaps, rules.min_action)}{steps}.json"
+                        "sampler_steps": req.sampler_steps, "action_rule": req.action_rule})
+    out = req.out or req.run / f"eval_{eval_name(req.split, rules.deadly_gaps, rules.min_action)}{req.variant_suffix()}.json"
     result.to_json(out)
     s = result.summary()
     print(

@@ -357,7 +357,15 @@ class TransformerPolicy(nn.Module):
         if cfg.action_head == "mse":
             return run_mlp(self.action_decoder, feats[cfg.centre_from]).float()
         if cfg.action_head == "gmm":
-            return self.mixture_mode(run_mlp(self.mixture_head, feats[cfg.centre_from]))
+            raw = run_mlp(self.mixture_head, feats[cfg.centre_from])
+            if cfg.action_rule == "mean":
+                logits, means, _ = self.mixture(raw)
+                return (logits.softmax(-1)[..., None] * means).sum(-2)
+            return self.mixture_mode(raw)
+        if cfg.action_rule == "mean":  # every centre's offset, weighted by the classifier's probabilities
+            probs = run_mlp(self.centre_head, feats[cfg.centre_from]).float().softmax(-1)  # (B, K)
+            off = run_mlp(self.offset_head, feats[cfg.offset_from]).float().view(*probs.shape, self.action_dim)
+            return ((self.centres + off) * probs[..., None]).sum(-2)
         c = run_mlp(self.centre_head, feats[cfg.centre_from]).float().argmax(-1)
         # the offset of centre c only (RowGatheredLinear's forward without the autograd bookkeeping)
         hidden = run_mlp(self.offset_head, feats[cfg.offset_from], n_layers=len(self.offset_head) - 1).float()
