@@ -83,17 +83,16 @@ def load_for_eval(run_dir: str | Path, device: str = "cpu", sampler_steps: Optio
     and the transformer head's ``action_rule`` when that is (module level, so a process pool can pickle a
     ``functools.partial`` of it)."""
     policy = load_policy(run_dir, device=device)
-    if action_rule is not None:
+    # (flag, config field, the families that have it, value): inference settings the run's config.json overrides
+    for flag, field, families, value in (("--action-rule", "action_rule", "transformer", action_rule),
+                                         ("--sampler-steps", "inference_steps", "diffusion", sampler_steps)):
+        if value is None:
+            continue
         cfg = policy.model.cfg
-        if not hasattr(cfg, "action_rule"):
-            raise SystemExit(f"cotpc eval: --action-rule is for the transformer policies; {run_dir} is {cfg.name!r}")
-        policy.model.cfg = cfg.replace(action_rule=action_rule)
-    if sampler_steps is not None:
-        cfg = policy.model.cfg
-        if not hasattr(cfg, "inference_steps"):
-            raise SystemExit(f"cotpc eval: --sampler-steps is for the diffusion policies; {run_dir} is {cfg.name!r}")
+        if not hasattr(cfg, field):
+            raise SystemExit(f"cotpc eval: {flag} is for the {families} policies; {run_dir} is {cfg.name!r}")
         try:
-            policy.model.cfg = cfg.replace(inference_steps=sampler_steps)
+            policy.model.cfg = cfg.replace(**{field: value})
         except ValueError as e:
-            raise SystemExit(f"cotpc eval: --sampler-steps {sampler_steps}: {e}") from None
+            raise SystemExit(f"cotpc eval: {flag} {value}: {e}") from None
     return policy

@@ -279,8 +279,9 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
         raise SystemExit("cotpc eval: --video needs a render device for ManiSkill3 tasks; not supported yet")
     demos, weights = req.demos_and_weights(info)
     device = req.device if req.backend != "cpu" else "cpu"
-    result = evaluate(policy_loader(weights, device, req.sampler_steps, req.action_rule), demos, req.split, req.episodes,
-                      horizon=req.horizon, procs=req.procs, backend=req.backend, num_envs=req.num_envs)
+    load = policy_loader(weights, device, req.sampler_steps, req.action_rule)
+    result = evaluate(load, demos, req.split, req.episodes, horizon=req.horizon, procs=req.procs,
+                      backend=req.backend, num_envs=req.num_envs)
     if result.env_id != env_id:
         raise SystemExit(f"cotpc eval: {req.run} was trained on {env_id} but {demos} holds {result.env_id} demos")
     result.meta.update({"run": str(req.run), "checkpoint": req.checkpoint, "demos": str(demos),

@@ -193,7 +193,8 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
                       rules.min_action)
     result.meta.update({"run": str(req.run), "checkpoint": req.checkpoint, "demos": str(demos),
                         "sampler_steps": req.sampler_steps, "action_rule": req.action_rule})
-    out = req.out or req.run / f"eval_{eval_name(req.split, rules.deadly_gaps, rules.min_action)}{req.variant_suffix()}.json"
+    name = eval_name(req.split, rules.deadly_gaps, rules.min_action)
+    out = req.out or req.run / f"eval_{name}{req.variant_suffix()}.json"
     result.to_json(out)
     s = result.summary()
     print(

@@ -203,6 +203,11 @@ class TransformerPolicy(nn.Module):
         k = logits.argmax(-1)[..., None, None].expand(*logits.shape[:-1], 1, self.action_dim)
         return means.gather(-2, k)[..., 0, :]
 
+    def mixture_mean(self, raw: torch.Tensor) -> torch.Tensor:
+        """The mixture's expected action (``action_rule="mean"``). (..., M (1 + 2p)) -> (..., p)."""
+        logits, means, _ = self.mixture(raw)
+        return (logits.softmax(-1)[..., None] * means).sum(-2)
+
     # --- training ---------------------------------------------------------------------------------------------
     def forward(self, batch: dict):
         return self.loss(batch)
@@ -358,10 +363,7 @@ class TransformerPolicy(nn.Module):
             return run_mlp(self.action_decoder, feats[cfg.centre_from]).float()
         if cfg.action_head == "gmm":
             raw = run_mlp(self.mixture_head, feats[cfg.centre_from])
-            if cfg.action_rule == "mean":
-                logits, means, _ = self.mixture(raw)
-                return (logits.softmax(-1)[..., None] * means).sum(-2)
-            return self.mixture_mode(raw)
+            return self.mixture_mean(raw) if cfg.action_rule == "mean" else self.mixture_mode(raw)
         if cfg.action_rule == "mean":  # every centre's offset, weighted by the classifier's probabilities
             probs = run_mlp(self.centre_head, feats[cfg.centre_from]).float().softmax(-1)  # (B, K)
             off = run_mlp(self.offset_head, feats[cfg.offset_from]).float().view(*probs.shape, self.action_dim)
