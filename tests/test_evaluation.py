@@ -148,6 +148,12 @@ def test_eval_cli_sampler_steps_for_a_diffusion_policy(demo_dir, tmp_path):
     assert not (run / "eval_val.json").exists()
     with pytest.raises(SystemExit, match="inference_steps"):
         cotpc_main(["eval", str(run), "--split", "val", "--episodes", "1", "--sampler-steps", "1000"])
+    # the executed part of each chunk: 1 = plan at every step; the queue is sized for it
+    cotpc_main(["eval", str(run), "--split", "val", "--episodes", "2", "--action-horizon", "1"])
+    saved = json.loads((run / "eval_val_ah1.json").read_text())
+    assert saved["summary"]["action_horizon"] == 1 and saved["summary"]["episodes"] == 2
+    with pytest.raises(SystemExit, match="action_horizon"):
+        cotpc_main(["eval", str(run), "--split", "val", "--episodes", "1", "--action-horizon", "16"])
     bc = tmp_path / "bc"
     cotpc_main(["train", "--data", str(demo_dir / "train.h5"), "--policy", "bc", "--out", str(bc), "--iters", "2",
                 "--no-progress"])

@@ -43,7 +43,8 @@ def test_train_writes_a_loadable_run(data, tmp_path):
 def test_resume_reaches_the_same_weights(data, tmp_path, policy):
     kw = dict(TINY, bf16=True)
     if policy == "cotpc":
-        kw["dropout"] = 0.1  # dropout: the RNG state must resume too
+        kw["dropout"] = 0.1  # dropout and state noise: the RNG states must resume too
+        kw["state_noise"] = 0.1
     full = train(TrainConfig(data=data, policy=policy, out=tmp_path / "full", iters=16, ckpt_every=8, **kw))
     part = tmp_path / "part"
     train(TrainConfig(data=data, policy=policy, out=part, iters=16, ckpt_every=8, stop_after=8, **kw))
@@ -63,6 +64,32 @@ def test_resume_with_other_config_or_data_is_a_clear_error(data, tmp_path):
     save_trajectories(other, synthetic_trajectories(n_episodes=10, obs_dim=7, action_dim=2, length=20, seed=1))
     with pytest.raises(CheckpointError, match="dims"):
         train(TrainConfig(data=other, out=tmp_path / "run", iters=8, resume=True, **TINY))
+
+
+def test_state_noise_perturbs_only_the_input_states(data):
+    from cotpc.data import load_trajectories
+    from cotpc.data.dataset import Stats, WindowDataset
+
+    trajs = load_trajectories(data)
+    eps = list(range(len(trajs)))
+    stats = Stats.of(np.concatenate([e.obs[:-1] for e in trajs.episodes]),
+                     np.concatenate([e.actions for e in trajs.episodes]))
+    ds = WindowDataset(trajs, eps, 4, stats, ("next", "last"))
+    clean = ds.sample(64, torch.Generator().manual_seed(0))
+    noisy = ds.sample(64, torch.Generator().manual_seed(0), state_noise=0.5)
+    for k in ("actions", "cot", "timesteps", "valid", "cot_hide"):
+        assert torch.equal(clean[k], noisy[k]), k
+    diff = noisy["states"] - clean["states"]
+    assert 0.4 < float(diff.std()) < 0.6  # the requested scale, in normalised units
+    assert torch.equal(ds.sample(64, torch.Generator().manual_seed(0), state_noise=0.0)["states"], clean["states"])
+
+
+def test_state_noise_is_checked_and_kept_on_resume(data, tmp_path):
+    with pytest.raises(ValueError, match="--state-noise"):
+        train(TrainConfig(data=data, out=tmp_path / "bad", iters=2, state_noise=-0.1, **TINY))
+    train(TrainConfig(data=data, out=tmp_path / "run", iters=4, state_noise=0.2, **TINY))
+    with pytest.raises(CheckpointError, match="--state-noise"):
+        train(TrainConfig(data=data, out=tmp_path / "run", iters=8, resume=True, **TINY))
 
 
 def test_missing_subskills_tells_how_to_segment(tmp_path):

@@ -154,12 +154,19 @@ class WindowDataset:
             batch["future_states"] = self.all_obs[torch.minimum(row[:, None] + self.future_s, final[:, None])]
         return batch
 
-    def sample(self, batch_size: int, generator: torch.Generator) -> dict[str, torch.Tensor]:
-        """Uniformly random window ends, plus the random CoT-mask length l in {0..T-1} per sample."""
+    def sample(self, batch_size: int, generator: torch.Generator, state_noise: float = 0.0) -> dict[str, torch.Tensor]:
+        """Uniformly random window ends, plus the random CoT-mask length l in {0..T-1} per sample.
+
+        ``state_noise`` > 0 adds Gaussian noise of that standard deviation (normalised units) to the input states
+        of the window, never to a target (actions, CoT targets, future states): the history then no longer
+        identifies a training demo exactly, which is how context policies memorise few configurations."""
         dev = generator.device  # a generator on the data's device samples there (no host round trip on a GPU)
         ends = torch.randint(self.size, (batch_size,), generator=generator, device=dev).to(self.device)
         batch = self.windows(ends)
         batch["cot_hide"] = torch.randint(self.context, (batch_size,), generator=generator, device=dev).to(self.device)
+        if state_noise > 0:
+            noise = torch.randn(batch["states"].shape, generator=generator, device=dev).to(self.device)
+            batch["states"] = batch["states"] + state_noise * noise
         return batch
 
 

@@ -60,11 +60,20 @@ class EvalRequest:
     """How a multi-modal transformer head (bet, cotpc, gmm presets) acts: ``mode`` (the run's default: the arg-max
     centre plus its offset, or the most likely Gaussian's mean) or ``mean`` (the expected action under the head's
     distribution). The evaluation file gets an ``_mean`` suffix, so it never replaces the run's own."""
+    action_horizon: Optional[int] = None
+    """Actions of each planned chunk executed before planning again, for the diffusion policies (dp, dd), instead
+    of the run's ``action_horizon`` (1 = plan at every step, closed loop). The file gets an ``_ahN`` suffix."""
+
+    def inference_overrides(self) -> dict:
+        """The inference settings this request replaces in the run's config ({config field: value})."""
+        return {field: getattr(self, attr) for attr, _, field, _ in INFERENCE_SETTINGS
+                if getattr(self, attr) is not None}
 
     def variant_suffix(self) -> str:
         """File-name suffix of an evaluation with non-default inference settings (never overwrite the run's own)."""
         return (f"_steps{self.sampler_steps}" if self.sampler_steps else "") + (
-            f"_{self.action_rule}" if self.action_rule not in (None, "mode") else "")
+            f"_{self.action_rule}" if self.action_rule not in (None, "mode") else "") + (
+            f"_ah{self.action_horizon}" if self.action_horizon else "")
 
     def demos_and_weights(self, info: dict) -> tuple[Path, Path]:
         """The demo directory (given, or that of the run's training data) and the checkpoint to evaluate."""
@@ -77,17 +86,22 @@ class EvalRequest:
         return demos, (self.run if self.checkpoint == "last" else self.run / "best")
 
 
-def load_for_eval(run_dir: str | Path, device: str = "cpu", sampler_steps: Optional[int] = None,
-                  action_rule: Optional[str] = None):
-    """:func:`cotpc.load_policy`, with the diffusion sampler's step count replaced when ``sampler_steps`` is set
-    and the transformer head's ``action_rule`` when that is (module level, so a process pool can pickle a
+# Inference settings a request may override: (EvalRequest field, flag, config field, the families that have it).
+INFERENCE_SETTINGS = (
+    ("action_rule", "--action-rule", "action_rule", "transformer"),
+    ("sampler_steps", "--sampler-steps", "inference_steps", "diffusion"),
+    ("action_horizon", "--action-horizon", "action_horizon", "diffusion"),
+)
+
+
+def load_for_eval(run_dir: str | Path, device: str = "cpu", overrides: Optional[dict] = None):
+    """:func:`cotpc.load_policy`, with the inference settings in ``overrides`` ({config field: value}, from
+    :meth:`EvalRequest.inference_overrides`) replacing the run's (module level, so a process pool can pickle a
     ``functools.partial`` of it)."""
     policy = load_policy(run_dir, device=device)
-    # (flag, config field, the families that have it, value): inference settings the run's config.json overrides
-    for flag, field, families, value in (("--action-rule", "action_rule", "transformer", action_rule),
-                                         ("--sampler-steps", "inference_steps", "diffusion", sampler_steps)):
-        if value is None:
-            continue
+    flags = {field: (flag, families) for _, flag, field, families in INFERENCE_SETTINGS}
+    for field, value in (overrides or {}).items():
+        flag, families = flags[field]
         cfg = policy.model.cfg
         if not hasattr(cfg, field):
             raise SystemExit(f"cotpc eval: {flag} is for the {families} policies; {run_dir} is {cfg.name!r}")

@@ -111,7 +111,6 @@ class Policy:
         self.model = model.to(device).eval()
         self.info = info or {}
         self.device = torch.device(device)
-        self.cfg: BaseConfig = model.cfg
         self.obs_dim, self.action_dim = model.obs_dim, model.action_dim
         self.T = self.cfg.window
         self._transformer = isinstance(model, TransformerPolicy)
@@ -125,6 +124,12 @@ class Policy:
         self._actions = None  # (B, T, p) normalised; the last slot is the action just taken (NumPy on a CPU)
         self._t = None  # (B,) NumPy: timestep of the next observation
         self._n = None  # (B,) NumPy: number of earlier steps held in the context
+
+    @property
+    def cfg(self) -> BaseConfig:
+        """The model's config, read live: an inference setting replaced on the model (``cotpc eval
+        --action-horizon``, ``--sampler-steps``) takes effect on the next episode."""
+        return self.model.cfg
 
     @property
     def num_envs(self) -> int | None:

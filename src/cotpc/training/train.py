@@ -82,6 +82,9 @@ class TrainConfig:
     """Dropout (default 0, as the official code)."""
     cot_weight: Optional[float] = None
     """lambda, the weight of the CoT loss (default: the paper's 0.1; ignored by policies without a CoT loss)."""
+    state_noise: float = 0.0
+    """Std of Gaussian noise added to the normalised input states of every training window (0 = off; targets stay
+    clean): a regulariser against memorising the training configurations through the history."""
     grad_clip: float = 0.0
     """Clip the global gradient norm to this value (default 0 = off, as the paper and the official code)."""
     val_fraction: float = 0.1
@@ -283,6 +286,8 @@ def train(config: TrainConfig) -> Path:
 
 def _train(config: TrainConfig) -> Path:
     ckpt_every = checkpoint_interval(config)
+    if not (config.state_noise >= 0 and math.isfinite(config.state_noise)):
+        raise ValueError(f"--state-noise must be a finite number >= 0, got {config.state_noise}")
     # --- processes and devices ---
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
@@ -363,6 +368,9 @@ def _train(config: TrainConfig) -> Path:
                 f"{run_dir}: cannot resume: the run was trained with another configuration or data "
                 f"(differences (saved, now): {diff or ''} dims {state['dims']} vs {[q, p]})"
             )
+        if state.get("state_noise", 0.0) != config.state_noise:
+            raise CheckpointError(f"{run_dir}: cannot resume: the run was trained with --state-noise "
+                                  f"{state.get('state_noise', 0.0)}, not {config.state_noise}")
         load_state(model, state["model"], str(state_path))
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
@@ -411,7 +419,8 @@ def _train(config: TrainConfig) -> Path:
             save_checkpoint(run_dir / "checkpoints" / f"step_{at:07d}", model, info)
         state = {"step": at, "best_val": best_val, "policy": config_to_dict(cfg), "dims": [q, p],
                  "model": model.state_dict(), "optimizer": optimizer.state_dict(),
-                 "scheduler": scheduler.state_dict(), "rng": rng, "bf16": config.bf16}
+                 "scheduler": scheduler.state_dict(), "rng": rng, "bf16": config.bf16,
+                 "state_noise": config.state_noise}
         tmp = state_path.with_name(state_path.name + ".tmp")
         torch.save(state, tmp)
         os.replace(tmp, state_path)
@@ -437,7 +446,7 @@ def _train(config: TrainConfig) -> Path:
         clock = now
 
     while step < end:
-        batch = ds.sample(local_batch, gen)
+        batch = ds.sample(local_batch, gen, config.state_noise)
         lap("sample")
         loss, metrics = train_step(train_model, params, batch, optimizer, scheduler, config.grad_clip, autocast)
         step += 1

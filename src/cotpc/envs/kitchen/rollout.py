@@ -170,7 +170,7 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
     if req.rules not in (None, "paper"):
         raise SystemExit(f"cotpc eval: {env_id} has no rule variants (--rules {req.rules})")
     demos, weights = req.demos_and_weights(info)
-    policy = load_for_eval(weights, req.device, req.sampler_steps, req.action_rule)
+    policy = load_for_eval(weights, req.device, req.inference_overrides())
     result = evaluate(policy, demos, req.split, req.episodes, req.horizon, videos=req.num_videos if req.video else 0)
     if req.video:
         for path in write_videos(result, req.video):

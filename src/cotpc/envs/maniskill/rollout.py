@@ -279,13 +279,14 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
         raise SystemExit("cotpc eval: --video needs a render device for ManiSkill3 tasks; not supported yet")
     demos, weights = req.demos_and_weights(info)
     device = req.device if req.backend != "cpu" else "cpu"
-    load = policy_loader(weights, device, req.sampler_steps, req.action_rule)
+    load = policy_loader(weights, device, req.inference_overrides())
     result = evaluate(load, demos, req.split, req.episodes, horizon=req.horizon, procs=req.procs,
                       backend=req.backend, num_envs=req.num_envs)
     if result.env_id != env_id:
         raise SystemExit(f"cotpc eval: {req.run} was trained on {env_id} but {demos} holds {result.env_id} demos")
     result.meta.update({"run": str(req.run), "checkpoint": req.checkpoint, "demos": str(demos),
-                        "sampler_steps": req.sampler_steps, "action_rule": req.action_rule})
+                        "sampler_steps": req.sampler_steps, "action_rule": req.action_rule,
+                        "action_horizon": req.action_horizon})
     out = req.out or req.run / f"eval_{req.split}{req.variant_suffix()}.json"
     result.to_json(out)
     s = result.summary()
@@ -299,12 +300,10 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
     return s
 
 
-def policy_loader(run_dir: str | Path, device: str = "cpu", sampler_steps: int | None = None,
-                  action_rule: str | None = None) -> Callable[[], Any]:
-    """A picklable factory loading ``run_dir`` with :func:`cotpc.load_policy` (one copy per process); with
-    ``sampler_steps``, a diffusion policy samples with that many DDIM steps; with ``action_rule``, a transformer
-    head acts by that rule."""
-    return functools.partial(load_for_eval, str(run_dir), device, sampler_steps, action_rule)
+def policy_loader(run_dir: str | Path, device: str = "cpu", overrides: dict | None = None) -> Callable[[], Any]:
+    """A picklable factory loading ``run_dir`` with :func:`cotpc.load_policy` (one copy per process), with the
+    inference settings in ``overrides`` replacing the run's (:func:`cotpc.evaluation.request.load_for_eval`)."""
+    return functools.partial(load_for_eval, str(run_dir), device, overrides)
 
 
 class ReplayPolicy:

@@ -188,11 +188,12 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
         raise SystemExit(f"cotpc eval: unknown Moving Maze rules {rules_name!r}; expected one of {', '.join(RULES)}")
     rules = RULES[rules_name]
     demos, weights = req.demos_and_weights(info)
-    policy = load_for_eval(weights, req.device, req.sampler_steps, req.action_rule)
+    policy = load_for_eval(weights, req.device, req.inference_overrides())
     result = evaluate(policy, demos, req.split, req.episodes, req.video, req.num_videos, rules.deadly_gaps,
                       rules.min_action)
     result.meta.update({"run": str(req.run), "checkpoint": req.checkpoint, "demos": str(demos),
-                        "sampler_steps": req.sampler_steps, "action_rule": req.action_rule})
+                        "sampler_steps": req.sampler_steps, "action_rule": req.action_rule,
+                        "action_horizon": req.action_horizon})
     name = eval_name(req.split, rules.deadly_gaps, rules.min_action)
     out = req.out or req.run / f"eval_{name}{req.variant_suffix()}.json"
     result.to_json(out)
