@@ -82,3 +82,32 @@ def test_eval_files_of_other_action_rules_never_replace_the_runs_own(tmp_path):
     assert EvalRequest(run=tmp_path).variant_suffix() == ""
     assert EvalRequest(run=tmp_path, action_rule="mode").variant_suffix() == ""
     assert EvalRequest(run=tmp_path, action_rule="mean", sampler_steps=5).variant_suffix() == "_steps5_mean"
+    assert EvalRequest(run=tmp_path, action_rule="sample").variant_suffix() == "_sample"
+
+
+def test_sample_action_rule_draws_centres_by_their_probabilities_and_repeats():
+    """``action_rule="sample"`` (the original BeT's): a centre drawn from the classifier's softmax plus that
+    centre's offset; the draws follow the probabilities, and a freshly loaded model draws the same sequence."""
+    torch.manual_seed(0)
+    n = 4000
+    batch = {"states": torch.randn(1, T, Q).expand(n, T, Q), "actions": torch.randn(1, T, P).expand(n, T, P),
+             "timesteps": torch.arange(T).expand(n, T)}
+    cfg = get_preset("bet", n_centres=4, **TINY)
+    model = make_model(cfg, Q, P, max_timestep=10).eval()
+    with torch.no_grad():
+        for prm in model.parameters():
+            prm.add_(0.3 * torch.randn_like(prm))
+        model.centres.copy_(10.0 * torch.eye(4, P) + torch.arange(4.0)[:, None] * 100)  # far apart: c from the action
+        x, _ = model._features({k: v[:1] for k, v in batch.items()}, train=False)
+        probs = model.centre_head(model._select(x, cfg.centre_from, None)[:, -1]).softmax(-1)[0]
+        off = model.offset_head(model._select(x, cfg.offset_from, None)[:, -1]).view(-1, P)
+    model.cfg = cfg.replace(action_rule="sample")
+    first = model.predict(batch)
+    drawn = ((first[:, None, :] - (model.centres + off)[None]).abs().sum(-1) < 1e-4).float()
+    assert torch.equal(drawn.sum(1), torch.ones(n))  # every action is one centre plus its own offset
+    assert torch.allclose(drawn.mean(0), probs, atol=0.03)  # drawn as often as the classifier says
+    again = make_model(cfg, Q, P, max_timestep=10).eval()
+    again.load_state_dict(model.state_dict())
+    again.cfg = model.cfg
+    assert torch.equal(again.predict(batch), first)  # a new load repeats the evaluation exactly
+    assert not torch.equal(model.predict(batch), first)  # and the draws move on within an episode

@@ -56,10 +56,11 @@ class EvalRequest:
     """Denoising steps at inference, for the diffusion policies (dp, dd): DDIM with this many steps instead of
     the run's ``inference_steps`` (fewer: faster control, maybe lower success)."""
 
-    action_rule: Optional[Literal["mode", "mean"]] = None
+    action_rule: Optional[Literal["mode", "mean", "sample"]] = None
     """How a multi-modal transformer head (bet, cotpc, gmm presets) acts: ``mode`` (the run's default: the arg-max
-    centre plus its offset, or the most likely Gaussian's mean) or ``mean`` (the expected action under the head's
-    distribution). The evaluation file gets an ``_mean`` suffix, so it never replaces the run's own."""
+    centre plus its offset, or the most likely Gaussian's mean), ``mean`` (the expected action under the head's
+    distribution) or ``sample`` (a centre drawn from the head's probabilities, seeded: the original BeT's rule).
+    The evaluation file gets an ``_mean`` / ``_sample`` suffix, so it never replaces the run's own."""
     action_horizon: Optional[int] = None
     """Actions of each planned chunk executed before planning again, for the diffusion policies (dp, dd), instead
     of the run's ``action_horizon`` (1 = plan at every step, closed loop). The file gets an ``_ahN`` suffix."""

@@ -60,11 +60,13 @@ class TransformerConfig(BaseConfig):
     """Token features the offset regressor reads for timestep i (``cot``: the i-th CoT token)."""
     n_centres: int = 128
     """k-means clusters K of the normalised actions (default: the task's, cotpc.envs.spec.task_defaults)."""
-    action_rule: Literal["mode", "mean"] = "mode"
+    action_rule: Literal["mode", "mean", "sample"] = "mode"
     """How a multi-modal head acts (an inference setting; training is the same): ``mode``, the arg-max centre plus
     its offset (``bet``, the paper's) or the most likely Gaussian's mean (``gmm``); ``mean``, the expected action
     under the head's distribution (``bet``: sum over centres of p_k (centre_k + offset_k); ``gmm``: the mixture
-    mean). The ``mse`` head has one action. ``cotpc eval --action-rule``."""
+    mean); ``sample``, a centre (mode) drawn from the classifier's probabilities plus its offset (its mean), as
+    the original BeT acts, from a generator seeded 0 at load. The ``mse`` head has one action.
+    ``cotpc eval --action-rule``."""
     n_modes: int = 5
     """Gaussian components of the ``gmm`` head (robomimic's default)."""
     offset_weight: float = 100.0

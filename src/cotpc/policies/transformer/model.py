@@ -74,6 +74,7 @@ class TransformerPolicy(nn.Module):
         super().__init__()
         self.cfg, self.obs_dim, self.action_dim = cfg, obs_dim, action_dim
         self.norm = Normaliser(obs_dim, action_dim)
+        self._draws: torch.Generator | None = None  # action_rule="sample" only (draw_mode)
         d, h, p = cfg.d_model, cfg.hidden, action_dim
         n_cot = cfg.n_cot_tokens
         n_targets = len(cfg.cot_targets)
@@ -207,6 +208,13 @@ class TransformerPolicy(nn.Module):
         """The mixture's expected action (``action_rule="mean"``). (..., M (1 + 2p)) -> (..., p)."""
         logits, means, _ = self.mixture(raw)
         return (logits.softmax(-1)[..., None] * means).sum(-2)
+
+    def draw_mode(self, logits: torch.Tensor) -> torch.Tensor:
+        """``action_rule="sample"``: a mode index (B,) drawn from softmax(logits) (B, K) with the model's own
+        generator, seeded 0 when the model is built or loaded, so an evaluation repeats exactly."""
+        if self._draws is None or self._draws.device != logits.device:
+            self._draws = torch.Generator(device=logits.device).manual_seed(0)
+        return torch.multinomial(logits.float().softmax(-1), 1, generator=self._draws)[:, 0]
 
     # --- training ---------------------------------------------------------------------------------------------
     def forward(self, batch: dict):
@@ -356,19 +364,24 @@ class TransformerPolicy(nn.Module):
         return self._act(self._infer_features(states, actions, timesteps, n_prev=n_prev))
 
     def _act(self, feats: dict) -> torch.Tensor:
-        """The action heads at inference: the MSE decoder, the gmm head's most likely mean, or the arg-max centre
-        plus that centre's offset."""
+        """The action heads at inference: the MSE decoder; the gmm head's most likely mean (or the mixture mean, or
+        a drawn mode's mean); the arg-max centre plus that centre's offset (or the expected action, or a drawn
+        centre plus its offset)."""
         cfg = self.cfg
         if cfg.action_head == "mse":
             return run_mlp(self.action_decoder, feats[cfg.centre_from]).float()
         if cfg.action_head == "gmm":
             raw = run_mlp(self.mixture_head, feats[cfg.centre_from])
+            if cfg.action_rule == "sample":
+                logits, means, _ = self.mixture(raw)
+                return means[torch.arange(len(means), device=means.device), self.draw_mode(logits)]
             return self.mixture_mean(raw) if cfg.action_rule == "mean" else self.mixture_mode(raw)
         if cfg.action_rule == "mean":  # every centre's offset, weighted by the classifier's probabilities
             probs = run_mlp(self.centre_head, feats[cfg.centre_from]).float().softmax(-1)  # (B, K)
             off = run_mlp(self.offset_head, feats[cfg.offset_from]).float().view(*probs.shape, self.action_dim)
             return ((self.centres + off) * probs[..., None]).sum(-2)
-        c = run_mlp(self.centre_head, feats[cfg.centre_from]).float().argmax(-1)
+        logits = run_mlp(self.centre_head, feats[cfg.centre_from]).float()
+        c = self.draw_mode(logits) if cfg.action_rule == "sample" else logits.argmax(-1)  # sample: BeT's own rule
         # the offset of centre c only (RowGatheredLinear's forward without the autograd bookkeeping)
         hidden = run_mlp(self.offset_head, feats[cfg.offset_from], n_layers=len(self.offset_head) - 1).float()
         last, p = self.offset_head[-1], self.action_dim
