@@ -93,6 +93,13 @@ def test_reproduce_parallel_jobs_and_checkpoint_curve(tmp_path):
                             "eval_unseen.json").read_text())["summary"]
         assert 100 * saved["success_rate"] == rate and saved["episodes"] == 2 and saved["deadly_gaps"]
     assert "The paper's protocol" in (parallel / "report.md").read_text()
+    # our headline with checkpoint selection: the best validation checkpoint (the later on a tie), scored unseen
+    chosen = results["cotpc"]["val_selected"]["runs"]["seed0"]
+    best = max(range(10), key=lambda i: (curve["val"][i], i))
+    assert chosen["iteration"] == curve["iteration"][best] and chosen["val"] == curve["val"][best]
+    assert chosen["unseen"] == last["unseen"][last["iteration"].index(chosen["iteration"])]
+    assert results["cotpc"]["val_selected"]["mean"] == chosen["unseen"]
+    assert "Validation-selected weights" in (parallel / "report.md").read_text()
     assert (parallel / "val_success.png").exists() and "val_success.png" in (parallel / "report.md").read_text()
 
     # A finished run trained with other settings is an error, never reused as if it were the one asked for.
