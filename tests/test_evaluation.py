@@ -7,7 +7,7 @@ import pytest
 
 from cotpc.cli.main import main as cotpc_main
 from cotpc.data import load_trajectories
-from cotpc.envs.maze.env import RULES
+from cotpc.envs.maze.env import ISLANDS, RULES, inside
 from cotpc.envs.maze.rollout import (
     RandomPolicy,
     ReplayPolicy,
@@ -89,7 +89,7 @@ def test_wilson_interval():
     assert lo == pytest.approx(0.4038, abs=1e-3) and hi == pytest.approx(0.5962, abs=1e-3)
 
 
-def test_demos_also_succeed_when_gaps_are_deadly(demo_dir):
+def test_demos_also_succeed_when_gaps_are_deadly(demo_dir, tmp_path):
     # The demonstrator never steps into a gap, so the rule changes nothing for it: every demo replays to success
     # under the defaults (the paper's rules), and under each forgiving reading...
     data = load_trajectories(demo_dir / "train.h5")
@@ -103,6 +103,11 @@ def test_demos_also_succeed_when_gaps_are_deadly(demo_dir):
     # ...while a random walker falls.
     result = evaluate(RandomPolicy(seed=0), demo_dir, "seen", deadly_gaps=True)
     assert result.meta["fell"] > 0
+    # each fall is written with where the fatal step would have landed, which is off walkable ground
+    result.to_json(tmp_path / "random_eval.json")
+    falls = [e["fell_at"] for e in json.loads((tmp_path / "random_eval.json").read_text())["episodes"] if "fell_at" in e]
+    assert len(falls) == result.meta["fell"]
+    assert all(0 <= x <= 60 and 0 <= y <= 80 and not any(inside(np.array([[x, y]]), ISLANDS)[0]) for x, y in falls)
 
 
 def test_demos_also_succeed_under_the_papers_action_range(demo_dir):

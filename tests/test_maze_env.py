@@ -247,10 +247,13 @@ def test_deadly_gaps_rule_ends_the_episode_on_a_step_into_a_gap():
         _, success, done = env.step([[0.0, -3.0]])  # into the gap: no bridge at x=40
         assert not success[0]
         assert done[0] == deadly and env.fallen[0] == deadly
+        # where the fatal step would have landed is kept for diagnostics (NaN when no step fell)
+        np.testing.assert_array_equal(env.fall_point[0], [41.5, 58.0] if deadly else [np.nan, np.nan])  # x raised to 1.5
         if deadly:  # a fallen agent stays done: later actions change nothing
             before = env.agent.copy()
             env.step([[0.0, 3.0]])
             np.testing.assert_array_equal(env.agent, before)
+            np.testing.assert_array_equal(env.fall_point[0], [41.5, 58.0])
     # The maze border never kills, under either rule.
     env = MovingMazeBatch([make_config(agent_start=(59.0, 70.0))], deadly_gaps=True)
     _, _, done = env.step([[3.0, 0.0]])

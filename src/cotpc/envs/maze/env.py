@@ -295,6 +295,7 @@ class MovingMazeBatch:
         self.frozen = np.zeros((len(c), 3), dtype=bool)
         self.success = np.zeros(len(c), dtype=bool)
         self.fallen = np.zeros(len(c), dtype=bool)
+        self.fall_point = np.full((len(c), 2), np.nan)  # where the step that fell would have landed (diagnostics)
         self.elapsed = np.zeros(len(c), dtype=np.int64)
         # Action components of active episodes, and how many of them the min_action rule raised.
         self.active_components = self.raised_components = 0
@@ -344,7 +345,9 @@ class MovingMazeBatch:
         proposal = self.agent + actions
         ok = active & walkable(proposal, self.start_y, self.moving)
         if self.deadly_gaps:
-            self.fallen |= active & ~ok & in_bounds(proposal)
+            falls = active & ~ok & in_bounds(proposal)
+            self.fallen |= falls
+            self.fall_point[falls] = proposal[falls]
         self.agent = np.where(ok[:, None], proposal, self.agent)
         # A moving block the agent stands on stops for good.
         on_block = inside(self.agent, block_rects(self.start_y, self.moving))[:, 1:]

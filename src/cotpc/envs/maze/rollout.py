@@ -71,6 +71,7 @@ class EvalResult:
     seeds: list[int]
     seconds: float
     meta: dict = field(default_factory=dict)
+    fall_points: np.ndarray | None = None  # (E, 2) where the step into a gap would have landed; NaN if none
 
     @property
     def success_rate(self) -> float:
@@ -93,6 +94,10 @@ class EvalResult:
             {"seed": s, "success": bool(ok), "region_transitions": int(r), "steps": int(n)}
             for s, ok, r, n in zip(self.seeds, self.success, self.region_transitions, self.steps)
         ]
+        if self.fall_points is not None:  # where an episode ended in a gap, as (x, y): what the policy got wrong
+            for episode, point in zip(episodes, self.fall_points):
+                if not np.isnan(point).any():
+                    episode["fell_at"] = [round(float(v), 2) for v in point]
         Path(path).parent.mkdir(parents=True, exist_ok=True)
         Path(path).write_text(json.dumps({"summary": self.summary(), "episodes": episodes}, indent=1))
 
@@ -131,6 +136,7 @@ def rollout(
         region_transitions=env.progress.copy(),
         steps=steps,
         seeds=list(seeds),
+        fall_points=env.fall_point.copy(),
         seconds=time.perf_counter() - start,
         meta={"deadly_gaps": deadly_gaps, "landing": landing, "min_action": min_action, "fell": int(env.fallen.sum())},
     )
