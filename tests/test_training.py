@@ -243,3 +243,36 @@ def test_validation_does_not_depend_on_the_chunk_size(data):
     assert len(ds) > 7 and default.keys() == small.keys() and "last_action_err" in default
     for k in default:
         assert default[k] == pytest.approx(small[k], rel=1e-5 if k.startswith("last_") else 1e-2, abs=1e-7), k
+
+
+def test_validation_of_a_sampling_family_scores_a_fixed_evenly_spaced_subset(data):
+    """A family with ``validation_windows`` (the diffusion policies) is scored on that many held-out windows,
+    evenly spaced over the set and the same each time; the others on every window."""
+    from cotpc.data import load_trajectories
+    from cotpc.data.dataset import Stats, WindowDataset
+    from cotpc.training.train import evaluate_loss
+
+    trajs = load_trajectories(data)
+    eps = list(range(len(trajs)))
+    stats = Stats.of(np.concatenate([e.obs[:-1] for e in trajs.episodes]),
+                     np.concatenate([e.actions for e in trajs.episodes]))
+    ds = WindowDataset(trajs, eps, 4, stats)
+
+    class Recorder(torch.nn.Module):
+        def __init__(self, limit):
+            super().__init__()
+            self.validation_windows, self.seen = limit, []
+
+        def validation_metrics(self, batch):
+            self.seen.append(batch["timesteps"][:, -1].clone())
+            t = batch["timesteps"][:, -1].float().mean()
+            return {"t": t}, {"t": t}
+
+    full, capped = Recorder(None), Recorder(16)
+    everything = evaluate_loss(full, ds, contextlib.nullcontext, chunk=7)
+    subset = evaluate_loss(capped, ds, contextlib.nullcontext, chunk=7)
+    assert len(torch.cat(full.seen)) == len(ds) and len(torch.cat(capped.seen)) == 16
+    chosen = torch.linspace(0, len(ds) - 1, 16).round().long()
+    assert torch.equal(torch.cat(capped.seen), ds.timesteps[chosen])
+    assert subset["last_t"] == pytest.approx(float(ds.timesteps[chosen].float().mean()))
+    assert everything["last_t"] == pytest.approx(float(ds.timesteps.float().mean()))

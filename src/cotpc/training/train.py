@@ -164,7 +164,8 @@ def checkpoint_interval(config: TrainConfig) -> int:
 
 @torch.no_grad()
 def evaluate_loss(model: nn.Module, ds: WindowDataset, autocast, chunk: int | None = None) -> dict[str, float]:
-    """Validation metrics over every window of ``ds`` (no random CoT mask, dropout off), in ``chunk`` windows
+    """Validation metrics over every window of ``ds`` (or the model's ``validation_windows`` of them, evenly
+    spaced; no random CoT mask, dropout off), in ``chunk`` windows
     at a time (default: 256 on a CPU, where the activations of larger chunks fall out of the cache and a pass
     took twice as long at 1024, measured in docs/performance.md; 1024 on an accelerator), in two regimes:
 
@@ -175,8 +176,14 @@ def evaluate_loss(model: nn.Module, ds: WindowDataset, autocast, chunk: int | No
     model.eval()
     sums: dict[str, float] = {}
     chunk = chunk or (256 if torch.device(ds.device).type == "cpu" else 1024)
-    for start in range(0, len(ds), chunk):
-        ends = torch.arange(start, min(start + chunk, len(ds)), device=ds.device)
+    # A family whose validation samples (the diffusion policies: a DDIM chain per window) caps the windows it
+    # scores: a fixed, evenly spaced subset of every held-out episode, the same at each validation.
+    limit = getattr(model, "validation_windows", None)
+    every = torch.arange(len(ds), device=ds.device)
+    if limit and len(ds) > limit:
+        every = torch.linspace(0, len(ds) - 1, limit, device=ds.device).round().long()
+    for start in range(0, len(every), chunk):
+        ends = every[start:start + chunk]
         batch = ds.windows(ends)
         with autocast():
             metrics, last = model.validation_metrics(batch)
@@ -184,7 +191,7 @@ def evaluate_loss(model: nn.Module, ds: WindowDataset, autocast, chunk: int | No
             for k, v in group.items():
                 sums[prefix + k] = sums.get(prefix + k, 0.0) + float(v) * len(ends)
     model.train(was_training)
-    return {k: v / len(ds) for k, v in sums.items()}
+    return {k: v / len(every) for k, v in sums.items()}
 
 
 def loss_gradient_shares(model: nn.Module, batch: dict, autocast) -> dict[str, float]:
