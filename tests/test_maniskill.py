@@ -247,6 +247,11 @@ def test_reproduce_maniskill_end_to_end_and_resumes(stack_demos, tmp_path):
     assert 1_000_000 <= ckpt_eval["episodes"][0]["seed"] < 2_000_000  # a validation seed, never a test one
     assert r["paper_protocol"]["runs"]["seed0"]["iteration"] == [1, 2] and "test seeds" in r["paper_protocol"]["rule"]
     assert "| cotpc/seed0 | " in report and "The paper's protocol" in report
+    chosen = r["val_selected"]["runs"]["seed0"]  # the only point of the curve, scored on the unseen seeds
+    assert chosen["iteration"] == 2 and chosen["success_once"] == r["val_selected"]["mean"]
+    assert chosen["success_once"] == 100 * json.loads((tmp_path / "StackCube-v1/runs/cotpc/seed0/checkpoints/"
+                                                      "step_0000002/eval_unseen.json").read_text())["summary"]["success_once"]
+    assert "Validation-selected weights" in report
     assert (tmp_path / "val_success_StackCube-v1.png").exists()
     # A second invocation reuses the demos, the trained weights and the evaluations.
     weights = tmp_path / "StackCube-v1/runs/cotpc/seed0/model.safetensors"
