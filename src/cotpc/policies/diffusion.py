@@ -31,13 +31,17 @@ from cotpc.policies.base import BaseConfig, Normaliser, register_family
 
 @dataclass(frozen=True)
 class DPConfig(BaseConfig):
-    """Diffusion Policy: U-Net widths, horizons, diffusion and EMA settings, and the recommended optimisation
-    (the DP reference's: AdamW lr 1e-4, cosine to 0 after 500 warm-up steps, weight decay 1e-6, batch 256)."""
+    """Diffusion Policy: U-Net widths, horizons, diffusion and EMA settings, and the optimisation (the DP
+    reference's: AdamW, cosine to 0 after 500 warm-up steps, weight decay 1e-6, batch 256; its lr 1e-4 is raised
+    to 1e-3, chosen on validation, see ``lr``)."""
 
     name: str = "dp"
     """Preset name this configuration came from (informational)."""
-    lr: float = 1e-4
-    """Peak learning rate (DP reference: 1e-4)."""
+    lr: float = 1e-3
+    """Peak learning rate. The DP reference's 1e-4 is tuned for schedules of hundreds of thousands of iterations;
+    at the budgets of this project's studies it barely trains (Stack Cube, 4000 x 64: held-out action error 2.33,
+    cube grasped in 5% of validation episodes, against 0.107 and 80% at 1e-3; the maze, 1500 x 64: 1.6 against
+    1.07; docs/results). ``--lr 1e-4`` restores the reference."""
     min_lr: float = 0.0
     """Final learning rate of the cosine schedule (DP reference: 0)."""
     schedule: Literal["cosine", "constant"] = "cosine"
