@@ -65,6 +65,11 @@ class EvalRequest:
     """Actions of each planned chunk executed before planning again, for the diffusion policies (dp, dd), instead
     of the run's ``action_horizon`` (1 = plan at every step, closed loop). The file gets an ``_ahN`` suffix."""
 
+    def inference_settings(self) -> dict:
+        """Every inference setting of the request by its flag's name, None where the run's own is kept (recorded
+        in the evaluation file)."""
+        return {attr: getattr(self, attr) for attr, *_ in INFERENCE_SETTINGS}
+
     def inference_overrides(self) -> dict:
         """The inference settings this request replaces in the run's config ({config field: value})."""
         return {field: getattr(self, attr) for attr, _, field, _ in INFERENCE_SETTINGS

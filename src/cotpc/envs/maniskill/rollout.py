@@ -285,8 +285,7 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
     if result.env_id != env_id:
         raise SystemExit(f"cotpc eval: {req.run} was trained on {env_id} but {demos} holds {result.env_id} demos")
     result.meta.update({"run": str(req.run), "checkpoint": req.checkpoint, "demos": str(demos),
-                        "sampler_steps": req.sampler_steps, "action_rule": req.action_rule,
-                        "action_horizon": req.action_horizon})
+                        **req.inference_settings()})
     out = req.out or req.run / f"eval_{req.split}{req.variant_suffix()}.json"
     result.to_json(out)
     s = result.summary()

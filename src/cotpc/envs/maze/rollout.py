@@ -198,8 +198,7 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
     result = evaluate(policy, demos, req.split, req.episodes, req.video, req.num_videos, rules.deadly_gaps,
                       rules.min_action)
     result.meta.update({"run": str(req.run), "checkpoint": req.checkpoint, "demos": str(demos),
-                        "sampler_steps": req.sampler_steps, "action_rule": req.action_rule,
-                        "action_horizon": req.action_horizon})
+                        **req.inference_settings()})
     name = eval_name(req.split, rules.deadly_gaps, rules.min_action)
     out = req.out or req.run / f"eval_{name}{req.variant_suffix()}.json"
     result.to_json(out)
