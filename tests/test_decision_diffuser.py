@@ -141,6 +141,19 @@ def test_sampler_and_inverse_dynamics_learn_a_toy_system():
     # the inverse dynamics alone, on the demo's own transitions, is exact
     inv = model.ema.inverse(batch["states"][:, -1], batch["future_states"][:, 0]) * stats.act_std + stats.act_mean
     assert (inv - true_a).abs().max() < 0.05
+    # the validation diagnostics: the plan's next state is far closer than an untrained network's (the mean
+    # squared error is dominated by the few wrong-way samples, so it is not below one step's size, copy_err), and at
+    # the noisiest step the trained network hands the noise back
+    m = model.inference_metrics(batch)
+    untrained = make_model(cfg, 1, 1, 0).eval()
+    for name, v in vars(stats).items():
+        getattr(untrained.norm, name).copy_(v)
+    u = untrained.inference_metrics(batch)
+    print(f"DD toy diagnostics, trained / untrained: state_err {m['state_err']:.4f} / {u['state_err']:.4f}, "
+          f"copy_err {m['copy_err']:.4f}, denoise_max_noise {m['denoise_max_noise']:.4f} / {u['denoise_max_noise']:.4f}")
+    assert m["copy_err"] == u["copy_err"] > 0  # a property of the data alone
+    assert m["state_err"] < 0.05 * u["state_err"] and m["state_err"] < 5 * m["copy_err"] < u["state_err"]
+    assert m["denoise_max_noise"] < 0.1 < u["denoise_max_noise"]
 
 
 def test_ema_weights_are_what_acts_and_are_saved(tmp_path):

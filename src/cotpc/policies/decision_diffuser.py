@@ -210,11 +210,16 @@ class DecisionDiffuser(nn.Module):
                              f"future_states=cfg.future_states ({self.cfg.future_states})")
         return torch.cat([batch["states"], batch["future_states"]], dim=1)
 
-    def _denoise_loss(self, net: DDNet, plan: torch.Tensor, generator: torch.Generator | None = None) -> torch.Tensor:
-        """Noise-prediction MSE on the future part of ``plan``; the history is imposed clean, as at inference."""
+    def _denoise_loss(self, net: DDNet, plan: torch.Tensor, generator: torch.Generator | None = None,
+                      step: int | None = None) -> torch.Tensor:
+        """Noise-prediction MSE on the future part of ``plan``; the history is imposed clean, as at inference.
+        The diffusion steps are drawn uniformly, or are all ``step``."""
         B, H, dev = plan.shape[0], self.cfg.history, plan.device
         noise = torch.randn(plan.shape, generator=generator, device=dev)
-        k = torch.randint(self.cfg.train_steps, (B,), generator=generator, device=dev)
+        if step is None:
+            k = torch.randint(self.cfg.train_steps, (B,), generator=generator, device=dev)
+        else:
+            k = torch.full((B,), step, device=dev)
         noisy = torch.cat([plan[:, :H], self.train_scheduler.add_noise(plan, noise, k)[:, H:]], dim=1)
         pred = net.denoise(noisy, k).float()
         return F.mse_loss(pred[:, H:], noise[:, H:])
@@ -275,6 +280,11 @@ class DecisionDiffuser(nn.Module):
         """As the other families: ``action_err`` is the MSE of the sampled plan's a(t) (DDIM, EMA weights) against
         the demo's; ``state_err`` that of the planned s(t+1); ``inv`` the inverse dynamics' MSE on the demo's own
         (s(t), s(t+1)); ``denoise`` the noise-prediction loss of the EMA weights; ``bc`` the training objective.
+        Two diagnostics of the plan: ``copy_err``, the MSE of s(t) itself as a guess of s(t+1), the size of one
+        step, against which to read ``state_err`` (the inverse dynamics turns an error of that size into a wrong
+        action); and
+        ``denoise_max_noise``, the noise-prediction MSE at the noisiest step, where the noisy future is almost the
+        noise itself, so a network that carries its input through scores near 0.
         The noise comes from a fixed generator, so validation is deterministic and leaves the training RNG
         alone."""
         gen = torch.Generator(device=batch["states"].device).manual_seed(0)
@@ -285,8 +295,11 @@ class DecisionDiffuser(nn.Module):
         state_err = ((sampled[:, H] - plan[:, H]) ** 2).mean()
         a = self.ema.inverse(sampled[:, H - 1], sampled[:, H]).float()
         err = ((a - batch["actions"][:, -1]) ** 2).mean()
+        copy_err = ((plan[:, H - 1] - plan[:, H]) ** 2).mean()
+        # after the sampling above, so that the earlier metrics draw the same noise as before they existed
+        denoise_max_noise = self._denoise_loss(self.ema, plan, gen, step=self.cfg.train_steps - 1)
         return {"denoise": denoise, "inv": inv, "bc": 0.5 * (denoise + inv), "state_err": state_err,
-                "action_err": err}
+                "action_err": err, "copy_err": copy_err, "denoise_max_noise": denoise_max_noise}
 
     @torch.no_grad()
     def validation_metrics(self, batch: dict) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor]]:
