@@ -282,9 +282,8 @@ class DecisionDiffuser(nn.Module):
         (s(t), s(t+1)); ``denoise`` the noise-prediction loss of the EMA weights; ``bc`` the training objective.
         Two diagnostics of the plan: ``copy_err``, the MSE of s(t) itself as a guess of s(t+1), the size of one
         step, against which to read ``state_err`` (the inverse dynamics turns an error of that size into a wrong
-        action); and
-        ``denoise_max_noise``, the noise-prediction MSE at the noisiest step, where the noisy future is almost the
-        noise itself, so a network that carries its input through scores near 0.
+        action); and ``denoise_max_noise``, the noise-prediction MSE at the noisiest step, where the noisy future
+        is almost the noise itself, so a network that carries its input through scores near 0.
         The noise comes from a fixed generator, so validation is deterministic and leaves the training RNG
         alone."""
         gen = torch.Generator(device=batch["states"].device).manual_seed(0)
