@@ -196,6 +196,14 @@ def _cached_eval(run_dir: Path, split: str, horizon: int, episodes: int | None) 
     return summary
 
 
+def _checkpoint_eval(ckpt: Path, split: str, demos: Path, horizon: int, s: ManiSkillStudySettings,
+                     episodes: int | None) -> dict:
+    """A kept checkpoint's evaluation on ``split``: the one saved beside its weights while fresh, else a new one
+    (so an interrupted study picks up where it stopped)."""
+    summary = _cached_eval(ckpt, split, horizon, episodes)
+    return summary if summary is not None else _evaluate(ckpt, None, split=split, demos=demos, s=s, episodes=episodes)
+
+
 def validation_selected(run_dir: Path, curve: dict, demos: Path, horizon: int, s: ManiSkillStudySettings) -> dict:
     """Our headline with checkpoint selection: of the checkpoints on the validation ``curve``, the one with the
     highest success_once (ties, common on a short schedule: the higher normalised reward, then the later), and
@@ -203,9 +211,7 @@ def validation_selected(run_dir: Path, curve: dict, demos: Path, horizon: int, s
     n = len(curve["iteration"])
     best = max(range(n), key=lambda i: (curve["success_once"][i], curve["max_normalized_reward"][i], i))
     ckpt = run_dir / "checkpoints" / f"step_{curve['iteration'][best]:07d}"
-    summary = _cached_eval(ckpt, "unseen", horizon, None)
-    if summary is None:
-        summary = _evaluate(ckpt, None, split="unseen", demos=demos, s=s, episodes=None)
+    summary = _checkpoint_eval(ckpt, "unseen", demos, horizon, s, None)
     return {"iteration": curve["iteration"][best], "val_success_once": curve["success_once"][best],
             "success_once": 100 * summary["success_once"], "success_at_end": 100 * summary["success_at_end"],
             "max_normalized_reward": summary["mean_max_normalized_reward"]}
@@ -225,9 +231,7 @@ def checkpoint_curve(run_dir: Path, demos: Path, split: str, episodes: int | Non
     curve: dict = {"iteration": [], "samples": [], "success_once": [], "success_at_end": [],
                    "max_normalized_reward": [], "stages_once": []}
     for ckpt in kept:
-        summary = _cached_eval(ckpt, split, horizon, episodes)
-        if summary is None:
-            summary = _evaluate(ckpt, None, split=split, demos=demos, s=s, episodes=episodes)
+        summary = _checkpoint_eval(ckpt, split, demos, horizon, s, episodes)
         step = int(ckpt.name.split("_")[1])
         curve["iteration"].append(step)
         curve["samples"].append(step * batch)
