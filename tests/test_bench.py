@@ -39,8 +39,12 @@ def test_bench_act_times_inference_variants_of_the_transformers_only(capsys):
 
 def test_bench_train_runs_every_family(capsys):
     cotpc_main(["bench", "train", "--policies", "bc", "dp", "dd", "--settings", "maniskill", "--rounds", "1",
-                "--iters", "1", "--warmup", "1", "--bf16", "False", "--threads", "1", "--json"])
+                "--iters", "1", "--warmup", "1", "--bf16", "False", "--threads", "1", "--json", "--batch-scales", "1", "2"])
     rows = {r["policy"]: r for r in json.loads(capsys.readouterr().out)["rows"]}
-    assert set(rows) == {"bc", "dp", "dd"}
-    assert all(r["ms_min"] > 0 and r["gflop_per_iter"] > 0 and not r["bf16"] for r in rows.values())
+    assert set(rows) == {"bc", "dp", "dd", "bc x2", "dp x2", "dd x2"}
+    assert all(r["ms_min"] > 0 and r["gflop_per_iter"] > 0 and not r["bf16"] and r["samples_per_s"] > 0
+               for r in rows.values())
+    for name in ("bc", "dp", "dd"):  # the doubled batch is a doubled step: twice the samples and the FLOPs
+        assert rows[f"{name} x2"]["batch_size"] == 2 * rows[name]["batch_size"]
+        assert rows[f"{name} x2"]["gflop_per_iter"] == pytest.approx(2 * rows[name]["gflop_per_iter"], rel=0.05)
 

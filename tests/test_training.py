@@ -45,6 +45,7 @@ def test_resume_reaches_the_same_weights(data, tmp_path, policy):
     if policy == "cotpc":
         kw["dropout"] = 0.1  # dropout and state noise: the RNG states must resume too
         kw["state_noise"] = 0.1
+        kw["boundary_weight"] = 3.0  # weighted window ends: the sampler's draws must resume too
     full = train(TrainConfig(data=data, policy=policy, out=tmp_path / "full", iters=16, ckpt_every=8, **kw))
     part = tmp_path / "part"
     train(TrainConfig(data=data, policy=policy, out=part, iters=16, ckpt_every=8, stop_after=8, **kw))
@@ -89,6 +90,52 @@ def test_state_noise_is_checked_and_kept_on_resume(data, tmp_path):
         train(TrainConfig(data=data, out=tmp_path / "bad", iters=2, state_noise=-0.1, **TINY))
     train(TrainConfig(data=data, out=tmp_path / "run", iters=4, state_noise=0.2, **TINY))
     with pytest.raises(CheckpointError, match="--state-noise"):
+        train(TrainConfig(data=data, out=tmp_path / "run", iters=8, resume=True, **TINY))
+
+
+def test_boundary_weights_mark_the_steps_around_each_subskill_boundary():
+    from cotpc.data.dataset import boundary_weights
+
+    ep = synthetic_trajectories(n_episodes=1, length=20, seed=0).episodes[0]
+    ep.extras["subskill_ends"] = np.array([4, 11, 19])  # key states at 5 and 12; 20 is the episode's end
+    w = boundary_weights(ep, 3.0, 1, "x")
+    assert w.shape == (20,)
+    assert np.flatnonzero(w == 3.0).tolist() == [4, 5, 6, 11, 12, 13] and set(w.tolist()) == {1.0, 3.0}
+    assert np.flatnonzero(boundary_weights(ep, 2.0, 0, "x") == 2.0).tolist() == [5, 12]
+    with pytest.raises(ValueError, match="boundary weight"):
+        boundary_weights(ep, 0.0, 1, "x")
+    del ep.extras["subskill_ends"]
+    with pytest.raises(MissingSubskillsError, match="cotpc segment"):
+        boundary_weights(ep, 3.0, 1, "x")
+
+
+def test_boundary_weight_draws_boundary_windows_that_much_more_often(data):
+    from cotpc.data import load_trajectories
+    from cotpc.data.dataset import Stats, WindowDataset, boundary_weights
+
+    trajs = load_trajectories(data)
+    eps = list(range(len(trajs)))
+    stats = Stats.of(np.concatenate([e.obs[:-1] for e in trajs.episodes]),
+                     np.concatenate([e.actions for e in trajs.episodes]))
+    near = np.concatenate([boundary_weights(e, 2.0, 1, "x") > 1 for e in trajs.episodes])
+    assert 0.1 < near.mean() < 0.9
+    uniform = WindowDataset(trajs, eps, 4, stats, ("next", "last"))
+    same = WindowDataset(trajs, eps, 4, stats, ("next", "last"), boundary_weight=1.0)
+    a, b = (ds.sample(64, torch.Generator().manual_seed(0)) for ds in (uniform, same))
+    assert all(torch.equal(a[k], b[k]) for k in a)  # weight 1 is the uniform sampler, draw for draw
+    weighted = WindowDataset(trajs, eps, 4, stats, ("next", "last"), boundary_weight=4.0, boundary_radius=1)
+    gen = torch.Generator().manual_seed(0)
+    ends = torch.cat([weighted.sample_ends(4096, gen) for _ in range(8)]).numpy()
+    expected = 4 * near.mean() / (4 * near.mean() + (1 - near.mean()))
+    assert abs(near[ends].mean() - expected) < 0.02, (near[ends].mean(), expected)
+    assert ends.min() >= 0 and ends.max() < len(weighted) and len(np.unique(ends)) == len(weighted)
+
+
+def test_boundary_weight_is_checked_and_kept_on_resume(data, tmp_path):
+    with pytest.raises(ValueError, match="--boundary-weight"):
+        train(TrainConfig(data=data, out=tmp_path / "bad", iters=2, boundary_weight=-1.0, **TINY))
+    train(TrainConfig(data=data, out=tmp_path / "run", iters=4, boundary_weight=2.0, **TINY))
+    with pytest.raises(CheckpointError, match="--boundary-weight"):
         train(TrainConfig(data=data, out=tmp_path / "run", iters=8, resume=True, **TINY))
 
 
@@ -245,7 +292,7 @@ def test_validation_does_not_depend_on_the_chunk_size(data):
         assert default[k] == pytest.approx(small[k], rel=1e-5 if k.startswith("last_") else 1e-2, abs=1e-7), k
 
 
-def test_validation_of_a_sampling_family_scores_a_fixed_evenly_spaced_subset(data):
+def test_validation_of_a_sampling_family_scores_a_fixed_evenly_spaced_subset(data, tmp_path):
     """A family with ``validation_windows`` (the diffusion policies) is scored on that many held-out windows,
     evenly spaced over the set and the same each time; the others on every window."""
     from cotpc.data import load_trajectories
@@ -276,3 +323,8 @@ def test_validation_of_a_sampling_family_scores_a_fixed_evenly_spaced_subset(dat
     assert torch.equal(torch.cat(capped.seen), ds.timesteps[chosen])
     assert subset["last_t"] == pytest.approx(float(ds.timesteps[chosen].float().mean()))
     assert everything["last_t"] == pytest.approx(float(ds.timesteps.float().mean()))
+    overridden = Recorder(16)  # --val-windows overrides the family's cap
+    evaluate_loss(overridden, ds, contextlib.nullcontext, chunk=7, limit=40)
+    assert len(torch.cat(overridden.seen)) == 40
+    with pytest.raises(ValueError, match="--val-windows"):
+        train(TrainConfig(data=data, out=tmp_path / "bad", iters=2, val_windows=0, **TINY))

@@ -62,6 +62,10 @@ class Config:
     official: Optional[Path] = None
     """The official CoTPC code: its `src/model.py`, or a checkout of github.com/SeanJia/CoTPC. Also time its
     architecture in the same rounds and report our CoTPC step as a multiple of its speed."""
+    batch_scales: tuple[int, ...] = (1,)
+    """Also time each policy at these multiples of its batch, in the same rounds (samples/s column). Training
+    N seeds of a policy as one stacked model does the work of one model at N times the batch, so where a larger
+    batch does not raise samples/s, stacking seeds (torch.func) cannot either."""
     threads: Optional[int] = None
     """torch CPU threads (default: torch's)."""
     json: bool = False
@@ -87,10 +91,12 @@ def matmul_peak(dtype: torch.dtype, n: int = 2048, reps: int = 5, budget_s: floa
         size *= 2
 
 
-def policy_step(name: str, setting: str, bf16: Optional[bool]) -> tuple[Callable[[], object], dict]:
-    """The training step of policy ``name`` on synthetic data of ``setting``'s shape, and facts about it."""
+def policy_step(name: str, setting: str, bf16: Optional[bool], batch_scale: int = 1) -> tuple[Callable[[], object], dict]:
+    """The training step of policy ``name`` on synthetic data of ``setting``'s shape (its batch times
+    ``batch_scale``), and facts about it."""
     s = SETTINGS[setting]
     pcfg = get_preset(name, context=s["context"], n_centres=s["n_centres"])
+    pcfg = pcfg.replace(batch_size=pcfg.batch_size * batch_scale)
     trajs = synthetic_trajectories(64, s["obs_dim"], s["action_dim"], s["length"], n_segments=4, seed=0)
     obs = np.concatenate([e.obs[:-1] for e in trajs.episodes])
     act = np.concatenate([e.actions for e in trajs.episodes])
@@ -172,8 +178,12 @@ def count_flops(step: Callable[[], object]) -> float:
 def bench_setting(setting: str, names: list[str], cfg: Config, official) -> list[dict]:
     """Every policy of one setting (and the official architecture), timed in the same alternating rounds."""
     steps, infos = {}, {}
+    if any(k < 1 for k in cfg.batch_scales):
+        raise SystemExit(f"cotpc bench train: error: --batch-scales must be >= 1, got {cfg.batch_scales}")
     for name in names:
-        steps[name], infos[name] = policy_step(name, setting, cfg.bf16)
+        for k in sorted(set(cfg.batch_scales)):
+            key = name if k == 1 else f"{name} x{k}"
+            steps[key], infos[key] = policy_step(name, setting, cfg.bf16, k)
     if official is not None:
         steps["official"], infos["official"] = official_step(official, setting)
     flops = {name: count_flops(fn) for name, fn in steps.items()}
@@ -183,6 +193,7 @@ def bench_setting(setting: str, names: list[str], cfg: Config, official) -> list
         ms = 1000 * statistics.median(ts)
         rows.append({"setting": setting, "policy": name, "ms_per_iter": round(ms, 2),
                      "ms_min": round(1000 * min(ts), 2), **infos[name],
+                     "samples_per_s": round(infos[name]["batch_size"] / min(ts)),
                      "gflop_per_iter": round(flops[name] / 1e9, 3), "gflops": round(flops[name] / 1e9 / (ms / 1000), 1)})
     if official is not None:
         off = next(r for r in rows if r["policy"] == "official")
@@ -209,13 +220,14 @@ def format_table(r: dict) -> str:
     lines = [f"CPU {cpu['model']} (flags: {' '.join(cpu['flags']) or 'none of amx/avx512'}), {r['threads']} threads, "
              f"torch {r['torch']}, matmul peak fp32 {r['matmul_peak_gflops']['fp32']} / bf16 "
              f"{r['matmul_peak_gflops']['bf16']} GFLOP/s",
-             f"{'setting':<10} {'policy':<13} {'prec':>4} {'ms/iter':>8} {'min':>8} {'batch':>5} {'T':>3} "
-             f"{'params':>8} {'GFLOP/it':>8} {'GFLOP/s':>8} {'% peak':>6} {'x official':>10}"]
+             f"{'setting':<10} {'policy':<16} {'prec':>4} {'ms/iter':>8} {'min':>8} {'batch':>5} {'T':>3} "
+             f"{'params':>8} {'GFLOP/it':>8} {'GFLOP/s':>8} {'% peak':>6} {'samples/s':>9} {'x official':>10}"]
     for x in r["rows"]:
         ratio = f"{x['speed_vs_official']:>10.2f}" if "speed_vs_official" in x else f"{'':>10}"
-        lines.append(f"{x['setting']:<10} {x['policy']:<13} {'bf16' if x['bf16'] else 'fp32':>4} "
+        lines.append(f"{x['setting']:<10} {x['policy']:<16} {'bf16' if x['bf16'] else 'fp32':>4} "
                      f"{x['ms_per_iter']:>8.1f} {x['ms_min']:>8.1f} {x['batch_size']:>5} {x['context']:>3} "
-                     f"{x['params']:>8} {x['gflop_per_iter']:>8.2f} {x['gflops']:>8.1f} {x['pct_of_peak']:>6.1f}{ratio}")
+                     f"{x['params']:>8} {x['gflop_per_iter']:>8.2f} {x['gflops']:>8.1f} {x['pct_of_peak']:>6.1f} "
+                     f"{x['samples_per_s']:>9}{ratio}")
     for x in r["rows"]:
         if x["precision"] and x["precision"].get("fp32_ms") is not None:
             p = x["precision"]

@@ -12,12 +12,13 @@ past it they repeat s(N).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from cotpc.data.targets import cot_targets
+from cotpc.data.targets import check_ends, cot_targets, key_state_indices
 from cotpc.data.trajectories import Episode, TrajectorySet
 
 
@@ -80,6 +81,26 @@ def episode_cot_targets(ep, targets: tuple[str, ...], rng: np.random.Generator, 
     return np.concatenate(parts, axis=1).astype(np.float32)
 
 
+def boundary_weights(ep, weight: float, radius: int, where: str) -> np.ndarray:
+    """(N,) sampling weight of each window end t of one episode: ``weight`` where t is within ``radius`` steps
+    of a boundary between two of its subskills (a key-state index c_i + 1 other than the episode's end), 1
+    elsewhere. Where a policy's mistakes tend to be fatal, between one subskill and the next (in the Moving Maze,
+    getting onto and across a bridge), these steps are a small share of a demo; the weight trains on them more
+    often without changing any target."""
+    if not (weight > 0 and math.isfinite(weight)) or radius < 0:
+        raise ValueError(f"boundary weight must be a finite number > 0 and radius >= 0, got {weight}, {radius}")
+    if "subskill_ends" not in ep.extras:
+        raise MissingSubskillsError(
+            f"{where}: episode {ep.episode_id} has no subskill_ends, which --boundary-weight needs; "
+            f"run `cotpc segment DATA.h5` on the data file first"
+        )
+    n = ep.num_steps
+    keys = key_state_indices(check_ends(ep.extras["subskill_ends"], n))[:-1]  # the last one is the episode's end
+    t = np.arange(n)
+    near = (np.abs(t[:, None] - keys[None, :]) <= radius).any(1) if len(keys) else np.zeros(n, bool)
+    return np.where(near, weight, 1.0)
+
+
 class WindowDataset:
     """Context windows of a subset of episodes, normalised, as tensors on one device."""
 
@@ -95,6 +116,8 @@ class WindowDataset:
         where: str = "data",
         future_actions: int = 0,
         future_states: int = 0,
+        boundary_weight: float = 1.0,
+        boundary_radius: int = 2,
     ):
         eps = [trajs.episodes[i] for i in episodes]
         if not eps:
@@ -127,6 +150,10 @@ class WindowDataset:
             self.cot = cot.view(-1, k * obs.shape[1]).to(dev)
         self.size = int(lengths.sum())
         self.offsets = torch.arange(context, device=dev) - (context - 1)
+        self.cum_weight = None  # uniform window ends unless boundary_weight != 1
+        if boundary_weight != 1.0:
+            w = np.concatenate([boundary_weights(ep, boundary_weight, boundary_radius, where) for ep in eps])
+            self.cum_weight = torch.as_tensor(np.cumsum(w)).to(dev)
 
     def __len__(self) -> int:
         return self.size
@@ -154,15 +181,24 @@ class WindowDataset:
             batch["future_states"] = self.all_obs[torch.minimum(row[:, None] + self.future_s, final[:, None])]
         return batch
 
+    def sample_ends(self, batch_size: int, generator: torch.Generator) -> torch.Tensor:
+        """(B,) flat indices of random window ends: uniform, or in proportion to the boundary weights."""
+        dev = generator.device
+        if self.cum_weight is None:
+            return torch.randint(self.size, (batch_size,), generator=generator, device=dev).to(self.device)
+        # inverse-CDF draw from the per-step weights: one searchsorted, no Python per sample
+        u = torch.rand(batch_size, generator=generator, device=dev, dtype=torch.float64).to(self.device)
+        return torch.searchsorted(self.cum_weight, u * self.cum_weight[-1], right=True).clamp_(max=self.size - 1)
+
     def sample(self, batch_size: int, generator: torch.Generator, state_noise: float = 0.0) -> dict[str, torch.Tensor]:
-        """Uniformly random window ends, plus the random CoT-mask length l in {0..T-1} per sample.
+        """Random window ends (uniform, or weighted towards subskill boundaries with ``boundary_weight``), plus
+        the random CoT-mask length l in {0..T-1} per sample.
 
         ``state_noise`` > 0 adds Gaussian noise of that standard deviation (normalised units) to the input states
         of the window, never to a target (actions, CoT targets, future states): the history then no longer
         identifies a training demo exactly, which is how context policies memorise few configurations."""
         dev = generator.device  # a generator on the data's device samples there (no host round trip on a GPU)
-        ends = torch.randint(self.size, (batch_size,), generator=generator, device=dev).to(self.device)
-        batch = self.windows(ends)
+        batch = self.windows(self.sample_ends(batch_size, generator))
         batch["cot_hide"] = torch.randint(self.context, (batch_size,), generator=generator, device=dev).to(self.device)
         if state_noise > 0:
             noise = torch.randn(batch["states"].shape, generator=generator, device=dev).to(self.device)

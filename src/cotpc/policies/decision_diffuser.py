@@ -181,8 +181,9 @@ class DecisionDiffuser(nn.Module):
     (normalised)."""
 
     # Validation samples a DDIM chain per window: score this many held-out windows, evenly spaced (evaluate_loss),
-    # so that validation stays a small share of a run (it took a third of a 4000-iteration Stack Cube run).
-    validation_windows = 1024
+    # so that validation stays under a tenth of a run (at 1024 windows it took 24-26% of 1500-iteration maze runs,
+    # docs/performance.md; `cotpc train --val-windows` overrides it).
+    validation_windows = 256
 
     def __init__(self, cfg: DDConfig, obs_dim: int, action_dim: int, max_timestep: int = 0):
         super().__init__()

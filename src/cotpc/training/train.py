@@ -85,12 +85,20 @@ class TrainConfig:
     state_noise: float = 0.0
     """Std of Gaussian noise added to the normalised input states of every training window (0 = off; targets stay
     clean): a regulariser against memorising the training configurations through the history."""
+    boundary_weight: float = 1.0
+    """Sample training windows that end within --boundary-radius steps of a boundary between two subskills (from
+    `cotpc segment`) this many times as often as the others (1 = uniform, as the paper)."""
+    boundary_radius: int = 2
+    """Steps either side of a subskill boundary that --boundary-weight covers."""
     grad_clip: float = 0.0
     """Clip the global gradient norm to this value (default 0 = off, as the paper and the official code)."""
     val_fraction: float = 0.1
     """Fraction of the file's episodes held out for the validation loss (split by episode, seeded)."""
     val_every: int = 1000
     """Validation interval in iterations (also at the end)."""
+    val_windows: Optional[int] = None
+    """Score at most this many held-out windows, evenly spaced, at each validation (default: every window, or the
+    policy family's cap: 256 for the diffusion policies, whose validation samples a denoising chain per window)."""
     ckpt_every: Optional[int] = None
     """Checkpoint interval in iterations (also at the end). Default: a tenth of the run (at most 5000), or a
     twentieth with --keep-checkpoints (the paper's last-20-checkpoints protocol): a killed run loses at most that."""
@@ -150,6 +158,11 @@ SELECT_ON = "last_action_err"
 PROTOCOL_CHECKPOINTS = 20
 
 
+# The TrainConfig fields that decide how training windows are drawn, with their defaults (a training state
+# saved before a field existed was trained with its default).
+SAMPLING_DEFAULTS = {"state_noise": 0.0, "boundary_weight": 1.0, "boundary_radius": 2}
+
+
 def checkpoint_interval(config: TrainConfig) -> int:
     """``--ckpt-every``, or its default: a tenth of the run (at most 5000 iterations), a twentieth when every
     checkpoint is kept."""
@@ -163,9 +176,10 @@ def checkpoint_interval(config: TrainConfig) -> int:
 
 
 @torch.no_grad()
-def evaluate_loss(model: nn.Module, ds: WindowDataset, autocast, chunk: int | None = None) -> dict[str, float]:
-    """Validation metrics over every window of ``ds`` (or the model's ``validation_windows`` of them, evenly
-    spaced; no random CoT mask, dropout off), in ``chunk`` windows
+def evaluate_loss(model: nn.Module, ds: WindowDataset, autocast, chunk: int | None = None,
+                  limit: int | None = None) -> dict[str, float]:
+    """Validation metrics over every window of ``ds`` (or ``limit`` of them, default the model's
+    ``validation_windows``, evenly spaced; no random CoT mask, dropout off), in ``chunk`` windows
     at a time (default: 256 on a CPU, where the activations of larger chunks fall out of the cache and a pass
     took twice as long at 1024, measured in docs/performance.md; 1024 on an accelerator), in two regimes:
 
@@ -178,7 +192,7 @@ def evaluate_loss(model: nn.Module, ds: WindowDataset, autocast, chunk: int | No
     chunk = chunk or (256 if torch.device(ds.device).type == "cpu" else 1024)
     # A family whose validation samples (the diffusion policies: a DDIM chain per window) caps the windows it
     # scores: a fixed, evenly spaced subset of every held-out episode, the same at each validation.
-    limit = getattr(model, "validation_windows", None)
+    limit = limit or getattr(model, "validation_windows", None)
     every = torch.arange(len(ds), device=ds.device)
     if limit and len(ds) > limit:
         every = torch.linspace(0, len(ds) - 1, limit, device=ds.device).round().long()
@@ -295,6 +309,11 @@ def _train(config: TrainConfig) -> Path:
     ckpt_every = checkpoint_interval(config)
     if not (config.state_noise >= 0 and math.isfinite(config.state_noise)):
         raise ValueError(f"--state-noise must be a finite number >= 0, got {config.state_noise}")
+    if config.val_windows is not None and config.val_windows < 1:
+        raise ValueError(f"--val-windows must be >= 1, got {config.val_windows}")
+    if not (config.boundary_weight > 0 and math.isfinite(config.boundary_weight)) or config.boundary_radius < 0:
+        raise ValueError(f"--boundary-weight must be a finite number > 0 and --boundary-radius >= 0, got "
+                         f"{config.boundary_weight} and {config.boundary_radius}")
     # --- processes and devices ---
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
@@ -335,7 +354,8 @@ def _train(config: TrainConfig) -> Path:
     where = str(config.data)
     fut = cfg.future_actions  # action chunks (Diffusion Policy); 0 for the other families
     fut_s = cfg.future_states  # planned states (Decision Diffuser); 0 for the other families
-    ds = WindowDataset(trajs, train_eps, cfg.window, stats, cfg.cot_targets, config.seed, device, where, fut, fut_s)
+    ds = WindowDataset(trajs, train_eps, cfg.window, stats, cfg.cot_targets, config.seed, device, where, fut, fut_s,
+                       config.boundary_weight, config.boundary_radius)
     val_ds = WindowDataset(trajs, val_eps, cfg.window, stats, cfg.cot_targets, config.seed + 1, device, where, fut,
                            fut_s) if len(val_eps) else None
     q, p = trajs.obs_dim, trajs.action_dim
@@ -375,9 +395,10 @@ def _train(config: TrainConfig) -> Path:
                 f"{run_dir}: cannot resume: the run was trained with another configuration or data "
                 f"(differences (saved, now): {diff or ''} dims {state['dims']} vs {[q, p]})"
             )
-        if state.get("state_noise", 0.0) != config.state_noise:
-            raise CheckpointError(f"{run_dir}: cannot resume: the run was trained with --state-noise "
-                                  f"{state.get('state_noise', 0.0)}, not {config.state_noise}")
+        for name, default in SAMPLING_DEFAULTS.items():  # how windows were drawn: a resumed run must draw alike
+            if state.get(name, default) != getattr(config, name):
+                raise CheckpointError(f"{run_dir}: cannot resume: the run was trained with --{name.replace('_', '-')} "
+                                      f"{state.get(name, default)}, not {getattr(config, name)}")
         load_state(model, state["model"], str(state_path))
         optimizer.load_state_dict(state["optimizer"])
         scheduler.load_state_dict(state["scheduler"])
@@ -427,7 +448,7 @@ def _train(config: TrainConfig) -> Path:
         state = {"step": at, "best_val": best_val, "policy": config_to_dict(cfg), "dims": [q, p],
                  "model": model.state_dict(), "optimizer": optimizer.state_dict(),
                  "scheduler": scheduler.state_dict(), "rng": rng, "bf16": config.bf16,
-                 "state_noise": config.state_noise}
+                 **{name: getattr(config, name) for name in SAMPLING_DEFAULTS}}
         tmp = state_path.with_name(state_path.name + ".tmp")
         torch.save(state, tmp)
         os.replace(tmp, state_path)
@@ -471,7 +492,7 @@ def _train(config: TrainConfig) -> Path:
             bar.update(1)
         lap("log")
         if main_proc and val_ds is not None and (step % config.val_every == 0 or step == config.iters):
-            last_val = evaluate_loss(model, val_ds, autocast)
+            last_val = evaluate_loss(model, val_ds, autocast, limit=config.val_windows)
             for k, v in last_val.items():
                 writer.add_scalar(f"val/{k}", v, step)
             for k, v in loss_gradient_shares(model, batch, autocast).items():
