@@ -44,6 +44,8 @@ def test_bench_train_runs_every_family(capsys):
     assert set(rows) == {"bc", "dp", "dd", "bc x2", "dp x2", "dd x2"}
     assert all(r["ms_min"] > 0 and r["gflop_per_iter"] > 0 and not r["bf16"] and r["samples_per_s"] > 0
                for r in rows.values())
+    with pytest.raises(SystemExit, match="--device"):
+        cotpc_main(["bench", "train", "--policies", "bc", "--device", "tpu"])
     for name in ("bc", "dp", "dd"):  # the doubled batch is a doubled step: twice the samples and the FLOPs
         assert rows[f"{name} x2"]["batch_size"] == 2 * rows[name]["batch_size"]
         assert rows[f"{name} x2"]["gflop_per_iter"] == pytest.approx(2 * rows[name]["gflop_per_iter"], rel=0.05)

@@ -34,7 +34,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from cotpc.data.dataset import Stats, WindowDataset, synthetic_trajectories
 from cotpc.policies import PRESETS, get_preset, make_model
 from cotpc.policies.kmeans import kmeans
-from cotpc.training.precision import PrecisionChoice, autocast_for, cpu_info, time_alternating
+from cotpc.training.precision import PrecisionChoice, autocast_for, cpu_info, synchronize, time_alternating
 from cotpc.training.train import make_optimizer, probe_precision, train_step
 
 SETTINGS = {
@@ -66,34 +66,40 @@ class Config:
     """Also time each policy at these multiples of its batch, in the same rounds (samples/s column). Training
     N seeds of a policy as one stacked model does the work of one model at N times the batch, so where a larger
     batch does not raise samples/s, stacking seeds (torch.func) cannot either."""
+    device: str = "cpu"
+    """Device to time on: cpu, or cuda (the GPU path of training: batches sampled on the device, SDPA's fused
+    attention, fused AdamW, bf16 where the GPU supports it)."""
     threads: Optional[int] = None
     """torch CPU threads (default: torch's)."""
     json: bool = False
     """Print JSON instead of a table."""
 
 
-def matmul_peak(dtype: torch.dtype, n: int = 2048, reps: int = 5, budget_s: float = 0.25) -> float:
+def matmul_peak(dtype: torch.dtype, n: int = 2048, reps: int = 5, budget_s: float = 0.25, device: str = "cpu") -> float:
     """GFLOP/s of an n x n x n matmul in ``dtype`` (best of ``reps``).
 
     The size doubles from 256 up to ``n`` only while one matmul takes under ``budget_s``: on a CPU without bf16
     instructions a 2048^3 bf16 matmul takes about a minute (measured 0.3 GFLOP/s on an AVX2 EPYC)."""
     size = 256
     while True:
-        a, b = torch.randn(size, size, dtype=dtype), torch.randn(size, size, dtype=dtype)
+        a, b = (torch.randn(size, size, dtype=dtype, device=device) for _ in range(2))
         a @ b
         best = float("inf")
         for _ in range(reps):
+            synchronize(device)
             t = time.perf_counter()
             a @ b
+            synchronize(device)
             best = min(best, time.perf_counter() - t)
         if size >= n or best > budget_s / 8:  # the next size takes 8x longer
             return 2 * size**3 / best / 1e9
         size *= 2
 
 
-def policy_step(name: str, setting: str, bf16: Optional[bool], batch_scale: int = 1) -> tuple[Callable[[], object], dict]:
+def policy_step(name: str, setting: str, bf16: Optional[bool], batch_scale: int = 1,
+                device: str = "cpu") -> tuple[Callable[[], object], dict]:
     """The training step of policy ``name`` on synthetic data of ``setting``'s shape (its batch times
-    ``batch_scale``), and facts about it."""
+    ``batch_scale``) on ``device``, and facts about it."""
     s = SETTINGS[setting]
     pcfg = get_preset(name, context=s["context"], n_centres=s["n_centres"])
     pcfg = pcfg.replace(batch_size=pcfg.batch_size * batch_scale)
@@ -101,17 +107,18 @@ def policy_step(name: str, setting: str, bf16: Optional[bool], batch_scale: int 
     obs = np.concatenate([e.obs[:-1] for e in trajs.episodes])
     act = np.concatenate([e.actions for e in trajs.episodes])
     ds = WindowDataset(trajs, list(range(len(trajs))), pcfg.window, Stats.of(obs, act), pcfg.cot_targets,
-                       future_actions=pcfg.future_actions, future_states=pcfg.future_states)
+                       device=device, future_actions=pcfg.future_actions, future_states=pcfg.future_states)
     torch.manual_seed(0)
     model = make_model(pcfg, s["obs_dim"], s["action_dim"], s["length"] + 1)
     if pcfg.n_kmeans_centres:
-        model.centres.copy_(kmeans(ds.actions, pcfg.n_kmeans_centres, iters=5))
-    choice = probe_precision(model, pcfg, ds, pcfg.batch_size, "cpu", 1.0) if bf16 is None \
+        model.centres.copy_(kmeans(ds.actions.cpu(), pcfg.n_kmeans_centres, iters=5))
+    model.to(device)
+    choice = probe_precision(model, pcfg, ds, pcfg.batch_size, device, 1.0) if bf16 is None \
         else PrecisionChoice(bf16, "set by --bf16")
-    optimizer, scheduler = make_optimizer(model, pcfg, 10**6, "cpu")
-    autocast = autocast_for("cpu", choice.bf16)
+    optimizer, scheduler = make_optimizer(model, pcfg, 10**6, device)
+    autocast = autocast_for(device, choice.bf16)
     params = list(model.parameters())
-    gen = torch.Generator().manual_seed(0)
+    gen = torch.Generator(device=device).manual_seed(0)
     model.train()
 
     def step():
@@ -136,7 +143,7 @@ def load_official(path: Path):
     return module
 
 
-def official_step(module, setting: str, batch_size: int = 256) -> tuple[Callable[[], object], dict]:
+def official_step(module, setting: str, batch_size: int = 256, device: str = "cpu") -> tuple[Callable[[], object], dict]:
     """The official CoTPC training step (its train.py: action MSE + 0.1 x key-state MSE, backward, AdamW step
     with its betas and cosine schedule, no clipping) at ``setting``'s shape, fp32 as the official code trains."""
     s = SETTINGS[setting]
@@ -146,13 +153,14 @@ def official_step(module, setting: str, batch_size: int = 256) -> tuple[Callable
                             attn_pdrop=0.0, cot_decoder="256")
     torch.manual_seed(0)
     with contextlib.redirect_stdout(io.StringIO()):  # it prints its parameter count
-        model = module.GPTWithCoT(conf, state_dim=q, action_dim=p)
+        model = module.GPTWithCoT(conf, state_dim=q, action_dim=p).to(device)
     optimizer = model.configure_adamw_optimizers({"init_lr": 5e-4, "weight_decay": 0.0, "beta1": 0.9, "beta2": 0.95})
     scheduler = torch.optim.lr_scheduler.LambdaLR(optimizer, lambda i: 1.0)
     gen = torch.Generator().manual_seed(0)
     states, actions = torch.randn(batch_size, T, q, generator=gen), torch.randn(batch_size, T, p, generator=gen)
     timesteps = torch.randint(0, s["length"] - T, (batch_size, 1), generator=gen)
     key_states = torch.randn(batch_size, 2, q, generator=gen)
+    states, actions, timesteps, key_states = (x.to(device) for x in (states, actions, timesteps, key_states))
     model.train()
 
     def step():
@@ -183,11 +191,11 @@ def bench_setting(setting: str, names: list[str], cfg: Config, official) -> list
     for name in names:
         for k in sorted(set(cfg.batch_scales)):
             key = name if k == 1 else f"{name} x{k}"
-            steps[key], infos[key] = policy_step(name, setting, cfg.bf16, k)
+            steps[key], infos[key] = policy_step(name, setting, cfg.bf16, k, cfg.device)
     if official is not None:
-        steps["official"], infos["official"] = official_step(official, setting)
+        steps["official"], infos["official"] = official_step(official, setting, device=cfg.device)
     flops = {name: count_flops(fn) for name, fn in steps.items()}
-    times = time_alternating(steps, rounds=cfg.rounds, reps=cfg.iters, warmup=cfg.warmup)
+    times = time_alternating(steps, rounds=cfg.rounds, reps=cfg.iters, warmup=cfg.warmup, device=cfg.device)
     rows = []
     for name, ts in times.items():
         ms = 1000 * statistics.median(ts)
@@ -205,19 +213,26 @@ def bench_setting(setting: str, names: list[str], cfg: Config, official) -> list
 def run(cfg: Config) -> dict:
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
+    if cfg.device not in ("cpu", "cuda") or (cfg.device == "cuda" and not torch.cuda.is_available()):
+        raise SystemExit(f"cotpc bench train: error: --device {cfg.device}: choose cpu, or cuda where a GPU is "
+                         f"visible (torch.cuda.is_available() is {torch.cuda.is_available()})")
     official = load_official(cfg.official) if cfg.official else None
-    peaks = {"fp32": round(matmul_peak(torch.float32), 1), "bf16": round(matmul_peak(torch.bfloat16), 1)}
+    n = 8192 if cfg.device == "cuda" else 2048
+    peaks = {"fp32": round(matmul_peak(torch.float32, n, device=cfg.device), 1),
+             "bf16": round(matmul_peak(torch.bfloat16, n, device=cfg.device), 1)}
     names = list(cfg.policies or PRESETS)
     rows = [r for s in cfg.settings for r in bench_setting(s, names, cfg, official)]
     for r in rows:
         r["pct_of_peak"] = round(100 * r["gflops"] / peaks["bf16" if r["bf16"] else "fp32"], 1)
-    return {"cpu": cpu_info(), "threads": torch.get_num_threads(), "matmul_peak_gflops": peaks, "rows": rows,
-            "torch": torch.__version__}
+    gpu = torch.cuda.get_device_name() if cfg.device == "cuda" else None
+    return {"cpu": cpu_info(), "gpu": gpu, "device": cfg.device, "threads": torch.get_num_threads(),
+            "matmul_peak_gflops": peaks, "rows": rows, "torch": torch.__version__}
 
 
 def format_table(r: dict) -> str:
     cpu = r["cpu"]
-    lines = [f"CPU {cpu['model']} (flags: {' '.join(cpu['flags']) or 'none of amx/avx512'}), {r['threads']} threads, "
+    where = f"GPU {r['gpu']}, " if r.get("gpu") else ""
+    lines = [f"{where}CPU {cpu['model']} (flags: {' '.join(cpu['flags']) or 'none of amx/avx512'}), {r['threads']} threads, "
              f"torch {r['torch']}, matmul peak fp32 {r['matmul_peak_gflops']['fp32']} / bf16 "
              f"{r['matmul_peak_gflops']['bf16']} GFLOP/s",
              f"{'setting':<10} {'policy':<16} {'prec':>4} {'ms/iter':>8} {'min':>8} {'batch':>5} {'T':>3} "

@@ -29,7 +29,8 @@ def autocast_for(device: str, bf16: bool):
     return lambda: torch.autocast(kind, dtype=torch.bfloat16)
 
 
-def _sync(device: str) -> None:
+def synchronize(device: str) -> None:
+    """Wait for the device's queued work (CUDA runs asynchronously; a timer must not stop before it ends)."""
     if device.startswith("cuda"):
         torch.cuda.synchronize()
 
@@ -41,14 +42,14 @@ def time_alternating(fns: dict[str, Callable[[], object]], rounds: int = 3, reps
     for fn in fns.values():
         for _ in range(warmup):
             fn()
-    _sync(device)
+    synchronize(device)
     times: dict[str, list[float]] = {name: [] for name in fns}
     for _ in range(rounds):
         for name, fn in fns.items():
             for _ in range(reps):
                 t = time.perf_counter()
                 fn()
-                _sync(device)
+                synchronize(device)
                 times[name].append(time.perf_counter() - t)
     return times
 
