@@ -37,6 +37,14 @@ def test_bench_act_times_inference_variants_of_the_transformers_only(capsys):
     assert all(r["batch"] == 2 and 0 < r["ms"] <= r["ms_max"] for r in rows)
 
 
+def test_bench_train_times_a_compiled_step(capsys):
+    cotpc_main(["bench", "train", "--policies", "bc", "--settings", "maze", "--rounds", "1", "--iters", "1",
+                "--warmup", "1", "--bf16", "False", "--threads", "1", "--json", "--compile", "off", "default"])
+    rows = {r["policy"]: r for r in json.loads(capsys.readouterr().out)["rows"]}
+    assert set(rows) == {"bc", "bc [default]"} and rows["bc [default]"]["compile"] == "default"
+    assert rows["bc [default]"]["gflop_per_iter"] == rows["bc"]["gflop_per_iter"] > 0
+
+
 def test_bench_train_runs_every_family(capsys):
     cotpc_main(["bench", "train", "--policies", "bc", "dp", "dd", "--settings", "maniskill", "--rounds", "1",
                 "--iters", "1", "--warmup", "1", "--bf16", "False", "--threads", "1", "--json", "--batch-scales", "1", "2"])

@@ -139,6 +139,19 @@ def test_boundary_weight_is_checked_and_kept_on_resume(data, tmp_path):
         train(TrainConfig(data=data, out=tmp_path / "run", iters=8, resume=True, **TINY))
 
 
+def test_compiled_training_tracks_eager_and_resumes_only_compiled_alike(data, tmp_path):
+    """--compile default: the same step through torch.compile's fused kernels, so the losses track eager
+    training's; a run started eager does not resume compiled (its numbers would change)."""
+    kw = dict(TINY, bf16=False, val_every=6)
+    losses = {}
+    for mode in ("off", "default"):
+        run = train(TrainConfig(data=data, out=tmp_path / mode, iters=6, compile=mode, **kw))
+        losses[mode] = json.loads((run / "config.json").read_text())["val"]["all_loss"]
+    assert losses["default"] == pytest.approx(losses["off"], rel=1e-3), losses
+    with pytest.raises(CheckpointError, match="--compile"):
+        train(TrainConfig(data=data, out=tmp_path / "off", iters=8, compile="default", resume=True, **kw))
+
+
 def test_missing_subskills_tells_how_to_segment(tmp_path):
     trajs = synthetic_trajectories(n_episodes=4, obs_dim=6, action_dim=2, length=20)
     for ep in trajs.episodes:

@@ -66,6 +66,9 @@ class Config:
     """Also time each policy at these multiples of its batch, in the same rounds (samples/s column). Training
     N seeds of a policy as one stacked model does the work of one model at N times the batch, so where a larger
     batch does not raise samples/s, stacking seeds (torch.func) cannot either."""
+    compile: tuple[Literal["off", "default", "reduce-overhead"], ...] = ("off",)
+    """Time each policy's step under these torch.compile modes (as `cotpc train --compile`), in the same rounds;
+    compilation happens in the warm-up and is not timed."""
     device: str = "cpu"
     """Device to time on: cpu, or cuda (the GPU path of training: batches sampled on the device, SDPA's fused
     attention, fused AdamW, bf16 where the GPU supports it)."""
@@ -96,10 +99,16 @@ def matmul_peak(dtype: torch.dtype, n: int = 2048, reps: int = 5, budget_s: floa
         size *= 2
 
 
-def policy_step(name: str, setting: str, bf16: Optional[bool], batch_scale: int = 1,
-                device: str = "cpu") -> tuple[Callable[[], object], dict]:
+def count_flops(step: Callable[[], object]) -> float:
+    with FlopCounterMode(display=False) as fc:
+        step()
+    return fc.get_total_flops()
+
+
+def policy_step(name: str, setting: str, bf16: Optional[bool], batch_scale: int = 1, device: str = "cpu",
+                compile: str = "off") -> tuple[Callable[[], object], dict]:
     """The training step of policy ``name`` on synthetic data of ``setting``'s shape (its batch times
-    ``batch_scale``) on ``device``, and facts about it."""
+    ``batch_scale``) on ``device``, eager or through ``torch.compile(mode=compile)``, and facts about it."""
     s = SETTINGS[setting]
     pcfg = get_preset(name, context=s["context"], n_centres=s["n_centres"])
     pcfg = pcfg.replace(batch_size=pcfg.batch_size * batch_scale)
@@ -120,12 +129,16 @@ def policy_step(name: str, setting: str, bf16: Optional[bool], batch_scale: int 
     params = list(model.parameters())
     gen = torch.Generator(device=device).manual_seed(0)
     model.train()
+    step_model = model
 
     def step():
-        train_step(model, params, ds.sample(pcfg.batch_size, gen), optimizer, scheduler, 1.0, autocast)
+        train_step(step_model, params, ds.sample(pcfg.batch_size, gen), optimizer, scheduler, 1.0, autocast)
 
     info = {"batch_size": pcfg.batch_size, "context": pcfg.window, "bf16": choice.bf16,
-            "precision": choice.as_dict(), "params": sum(p.numel() for p in model.parameters())}
+            "precision": choice.as_dict(), "params": sum(p.numel() for p in model.parameters()),
+            "compile": compile, "flops": count_flops(step)}  # counted on the eager step
+    if compile != "off":
+        step_model = torch.compile(model, mode=compile)
     return step, info
 
 
@@ -173,14 +186,8 @@ def official_step(module, setting: str, batch_size: int = 256, device: str = "cp
         scheduler.step()
 
     info = {"batch_size": batch_size, "context": T, "bf16": False, "precision": None,
-            "params": sum(x.numel() for x in model.parameters())}
+            "params": sum(x.numel() for x in model.parameters()), "compile": "off", "flops": count_flops(step)}
     return step, info
-
-
-def count_flops(step: Callable[[], object]) -> float:
-    with FlopCounterMode(display=False) as fc:
-        step()
-    return fc.get_total_flops()
 
 
 def bench_setting(setting: str, names: list[str], cfg: Config, official) -> list[dict]:
@@ -190,11 +197,12 @@ def bench_setting(setting: str, names: list[str], cfg: Config, official) -> list
         raise SystemExit(f"cotpc bench train: error: --batch-scales must be >= 1, got {cfg.batch_scales}")
     for name in names:
         for k in sorted(set(cfg.batch_scales)):
-            key = name if k == 1 else f"{name} x{k}"
-            steps[key], infos[key] = policy_step(name, setting, cfg.bf16, k, cfg.device)
+            for mode in dict.fromkeys(cfg.compile):
+                key = name + ("" if k == 1 else f" x{k}") + ("" if mode == "off" else f" [{mode}]")
+                steps[key], infos[key] = policy_step(name, setting, cfg.bf16, k, cfg.device, mode)
     if official is not None:
         steps["official"], infos["official"] = official_step(official, setting, device=cfg.device)
-    flops = {name: count_flops(fn) for name, fn in steps.items()}
+    flops = {name: info.pop("flops") for name, info in infos.items()}
     times = time_alternating(steps, rounds=cfg.rounds, reps=cfg.iters, warmup=cfg.warmup, device=cfg.device)
     rows = []
     for name, ts in times.items():

@@ -113,6 +113,10 @@ class TrainConfig:
     bf16: Optional[bool] = None
     """bfloat16 autocast of the forward pass (weights stay fp32). Default: on for CUDA; on a CPU, chosen by
     timing this run's own training step in both precisions (printed and stored in config.json)."""
+    compile: Literal["off", "default", "reduce-overhead"] = "off"
+    """torch.compile the training forward and backward: `reduce-overhead` also replays them as CUDA graphs, for
+    GPUs, where a small model's step is bound by kernel launches; `default` fuses kernels only. Off by default: on
+    a CPU it did not pay (docs/performance.md). A run resumes only with the setting it started with."""
     threads: Optional[int] = None
     """CPU threads per process (default: torch's; under torchrun on CPU, cores / processes)."""
     progress: bool = True
@@ -158,9 +162,10 @@ SELECT_ON = "last_action_err"
 PROTOCOL_CHECKPOINTS = 20
 
 
-# The TrainConfig fields that decide how training windows are drawn, with their defaults (a training state
-# saved before a field existed was trained with its default).
-SAMPLING_DEFAULTS = {"state_noise": 0.0, "boundary_weight": 1.0, "boundary_radius": 2}
+# The TrainConfig fields that decide how training windows are drawn and which kernels compute the step, with
+# their defaults (a training state saved before a field existed was trained with its default): a resumed run must
+# use the same ones to continue bit for bit.
+RESUME_MUST_MATCH = {"state_noise": 0.0, "boundary_weight": 1.0, "boundary_radius": 2, "compile": "off"}
 
 
 def checkpoint_interval(config: TrainConfig) -> int:
@@ -395,7 +400,7 @@ def _train(config: TrainConfig) -> Path:
                 f"{run_dir}: cannot resume: the run was trained with another configuration or data "
                 f"(differences (saved, now): {diff or ''} dims {state['dims']} vs {[q, p]})"
             )
-        for name, default in SAMPLING_DEFAULTS.items():  # how windows were drawn: a resumed run must draw alike
+        for name, default in RESUME_MUST_MATCH.items():  # sampling and kernels: a resumed run must match
             if state.get(name, default) != getattr(config, name):
                 raise CheckpointError(f"{run_dir}: cannot resume: the run was trained with --{name.replace('_', '-')} "
                                       f"{state.get(name, default)}, not {getattr(config, name)}")
@@ -424,6 +429,8 @@ def _train(config: TrainConfig) -> Path:
     if main_proc:
         print(f"{cfg.name}: {choice.summary()}", file=sys.stderr)
     train_model = nn.parallel.DistributedDataParallel(model) if ddp else model
+    if config.compile != "off":  # validation, checkpoints and the precision race use the eager model
+        train_model = torch.compile(train_model, mode=config.compile)
     autocast = autocast_for(device, config.bf16)
 
     writer = None
@@ -448,7 +455,7 @@ def _train(config: TrainConfig) -> Path:
         state = {"step": at, "best_val": best_val, "policy": config_to_dict(cfg), "dims": [q, p],
                  "model": model.state_dict(), "optimizer": optimizer.state_dict(),
                  "scheduler": scheduler.state_dict(), "rng": rng, "bf16": config.bf16,
-                 **{name: getattr(config, name) for name in SAMPLING_DEFAULTS}}
+                 **{name: getattr(config, name) for name in RESUME_MUST_MATCH}}
         tmp = state_path.with_name(state_path.name + ".tmp")
         torch.save(state, tmp)
         os.replace(tmp, state_path)
