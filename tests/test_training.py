@@ -93,6 +93,20 @@ def test_state_noise_is_checked_and_kept_on_resume(data, tmp_path):
         train(TrainConfig(data=data, out=tmp_path / "run", iters=8, resume=True, **TINY))
 
 
+def test_kept_checkpoints_hold_their_own_step(data, tmp_path):
+    """--keep-checkpoints links the files just written; later checkpoints must not change the earlier ones."""
+    run = train(TrainConfig(data=data, out=tmp_path / "run", iters=12, ckpt_every=4, keep_checkpoints=True, **TINY))
+    kept = sorted((run / "checkpoints").iterdir())
+    assert [k.name for k in kept] == ["step_0000004", "step_0000008", "step_0000012"]
+    weights = [load_file(str(k / "model.safetensors")) for k in kept]
+    assert [json.loads((k / "config.json").read_text())["step"] for k in kept] == [4, 8, 12]
+    name = next(n for n in weights[0] if weights[0][n].is_floating_point() and "norm" not in n)
+    assert not torch.equal(weights[0][name], weights[1][name]) and not torch.equal(weights[1][name], weights[2][name])
+    final = load_file(str(run / "model.safetensors"))
+    assert all(torch.equal(final[n], weights[2][n]) for n in final)
+    assert load_policy(kept[0]).select_action(np.zeros((1, 6), np.float32)).shape == (1, 2)
+
+
 def test_boundary_weights_mark_the_steps_around_each_subskill_boundary():
     from cotpc.data.dataset import boundary_weights
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +40,22 @@ def save_checkpoint(directory: str | os.PathLike, model: torch.nn.Module, meta: 
             "action_dim": model.action_dim, **meta}
     _atomic_write(directory / "model.safetensors", lambda p: save_file(state, str(p), metadata={"format": FORMAT}))
     _atomic_write(directory / "config.json", lambda p: p.write_text(json.dumps(info, indent=1, default=str)))
+    return directory
+
+
+def link_checkpoint(source: str | os.PathLike, directory: str | os.PathLike) -> Path:
+    """Keep the checkpoint just written in ``source`` under ``directory`` too, as hard links where the file system
+    allows (no second serialisation; ``save_checkpoint`` replaces files rather than rewriting them, so a link
+    keeps its content when the source is next written), else as copies."""
+    source, directory = Path(source), Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    for name in ("model.safetensors", "config.json"):
+        dst = directory / name
+        dst.unlink(missing_ok=True)
+        try:
+            os.link(source / name, dst)
+        except OSError:
+            shutil.copy2(source / name, dst)
     return directory
 
 

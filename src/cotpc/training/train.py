@@ -36,7 +36,7 @@ from cotpc.envs.spec import task_defaults
 from cotpc.policies import PRESETS, get_preset
 from cotpc.policies.kmeans import kmeans
 from cotpc.policies.base import config_from_dict, config_to_dict, make_model
-from cotpc.policies.policy import CheckpointError, load_state, save_checkpoint
+from cotpc.policies.policy import CheckpointError, link_checkpoint, load_state, save_checkpoint
 from cotpc.training.precision import PrecisionChoice, autocast_for, choose_precision
 
 PolicyName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]
@@ -451,7 +451,7 @@ def _train(config: TrainConfig) -> Path:
         info = {**meta, "step": at, "val": val}
         save_checkpoint(run_dir, model, info)
         if config.keep_checkpoints:
-            save_checkpoint(run_dir / "checkpoints" / f"step_{at:07d}", model, info)
+            link_checkpoint(run_dir, run_dir / "checkpoints" / f"step_{at:07d}")
         state = {"step": at, "best_val": best_val, "policy": config_to_dict(cfg), "dims": [q, p],
                  "model": model.state_dict(), "optimizer": optimizer.state_dict(),
                  "scheduler": scheduler.state_dict(), "rng": rng, "bf16": config.bf16,
