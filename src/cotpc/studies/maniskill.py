@@ -427,6 +427,8 @@ class ManiSkillReproduce:
     """Evaluation simulator: gpu = ManiSkill3's GPU-parallel simulation, cpu = process pool; auto = gpu with CUDA."""
     device: str = "auto"
     """Training device (auto: cuda if available)."""
+    compile: Literal["off", "default", "reduce-overhead"] = "off"
+    """torch.compile every training run (`cotpc train --compile`; reduce-overhead = CUDA graphs, for a GPU)."""
 
 
 def reproduce(cfg: ManiSkillReproduce) -> dict:
@@ -438,7 +440,8 @@ def reproduce(cfg: ManiSkillReproduce) -> dict:
         jobs=cfg.jobs,
         control_mode=cfg.control_mode, horizon=cfg.horizon, procs=cfg.procs, backend=cfg.backend,
         train=TrainConfig(data=cfg.out / "<task>" / "demos" / "train.h5", iters=cfg.iters, device=cfg.device,
-                          batch_size=cfg.batch_size, n_centres=cfg.n_centres, keep_checkpoints=cfg.keep_checkpoints),
+                          batch_size=cfg.batch_size, n_centres=cfg.n_centres, keep_checkpoints=cfg.keep_checkpoints,
+                          compile=cfg.compile),
     ))
     print()
     print(f"{'task':<22}{'policy':<10}{'seen %':>10}{'unseen %':>10}   (success_once, mean over seeds)")

@@ -14,7 +14,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Literal, Optional
 
 import numpy as np
 import torch
@@ -465,6 +465,8 @@ class MazeReproduce:
     """lambda, the weight of the CoT loss of the CoT policies (default: the paper's 0.1)."""
     grad_clip: Optional[float] = None
     """Clip the global gradient norm of every run to this value (default: off, as the paper)."""
+    compile: Literal["off", "default", "reduce-overhead"] = "off"
+    """torch.compile every training run (`cotpc train --compile`; reduce-overhead = CUDA graphs, for a GPU)."""
 
 
 def reproduce(cfg: MazeReproduce) -> dict:
@@ -485,7 +487,7 @@ def reproduce(cfg: MazeReproduce) -> dict:
         train=TrainConfig(
             data=cfg.out / "demos" / "train.h5", iters=cfg.iters or quick.get("iters", FULL_ITERS), device=cfg.device,
             batch_size=cfg.batch_size or quick.get("batch_size"), n_centres=cfg.n_centres or quick.get("n_centres"),
-            keep_checkpoints=cfg.keep_checkpoints, cot_weight=cfg.cot_weight,
+            keep_checkpoints=cfg.keep_checkpoints, cot_weight=cfg.cot_weight, compile=cfg.compile,
             **({"grad_clip": cfg.grad_clip} if cfg.grad_clip is not None else {})),
     )
     results = run(settings)
