@@ -61,6 +61,8 @@ train_loop() {  # MODE SEED OUTDIR: CoTPC on the maze demos at batch 256
     $PY -m cotpc train --data "$WORK/demos/train.h5" --policy cotpc --out "$3" --iters $ITERS --batch-size 256 \
         --n-centres 128 --device "$DEVICE" --compile "$1" --seed "$2" --val-every $ITERS --no-progress
 }
+export -f train_loop  # so that `timeout N bash -c 'train_loop ...'` can call it
+export WORK PY ITERS DEVICE
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv 2>/dev/null
 $PY -c "import torch; print('torch', torch.__version__, 'cuda', torch.cuda.is_available())"
 
@@ -71,7 +73,7 @@ fi
 if part 100 "2. the real loop, eager: CoTPC on Moving Maze demos, batch 256, $ITERS iterations"; then
     $PY -m cotpc demos maze --out "$WORK/demos" --train $DEMOS --val 20 --test 20 > /dev/null \
         && $PY -m cotpc segment "$WORK/demos/train.h5" > /dev/null \
-        && timeout 90 bash -c "$(declare -f train_loop); WORK=$WORK PY=$PY ITERS=$ITERS DEVICE=$DEVICE train_loop off 0 $WORK/loop-off" \
+        && timeout 90 bash -c 'train_loop off 0 "$WORK/loop-off"' \
         && cp "$WORK/loop-off/loop_timing.json" "$OUT/loop_off.json"
 fi
 if part 150 "3. the CoTPC step as $GRAPHS (bench train --compile)"; then
@@ -79,14 +81,13 @@ if part 150 "3. the CoTPC step as $GRAPHS (bench train --compile)"; then
         --compile off $GRAPHS $TIMING --json > "$OUT/bench_graphs.json" && show_bench "$OUT/bench_graphs.json"
 fi
 if [ -f "$WORK/demos/train.h5" ] && part 150 "4. the real loop, --compile $GRAPHS"; then
-    timeout 150 bash -c "$(declare -f train_loop); WORK=$WORK PY=$PY ITERS=$ITERS DEVICE=$DEVICE train_loop $GRAPHS 0 $WORK/loop-$GRAPHS" \
+    timeout 150 bash -c "train_loop $GRAPHS 0 \"\$WORK/loop-$GRAPHS\"" \
         && cp "$WORK/loop-$GRAPHS/loop_timing.json" "$OUT/loop_$GRAPHS.json"
 fi
 if [ -f "$WORK/demos/train.h5" ] && part 150 "5. $JOBS training runs sharing the device at once (as reproduce --jobs), eager"; then
     start=$SECONDS pids=""
     for seed in $(seq 1 $JOBS); do
-        (WORK=$WORK timeout 140 bash -c "$(declare -f train_loop); WORK=$WORK PY=$PY ITERS=$ITERS DEVICE=$DEVICE train_loop off $seed $WORK/jobs/seed$seed") \
-            > "$WORK/job$seed.log" 2>&1 &
+        timeout 140 bash -c "train_loop off $seed \"\$WORK/jobs/seed$seed\"" > "$WORK/job$seed.log" 2>&1 &
         pids="$pids $!"
     done
     wait $pids  # (a bare `wait` would also wait for the tee of the log)

@@ -9,13 +9,22 @@ import pytest
 import torch
 from safetensors.torch import load_file
 
-from cotpc.data import save_trajectories
-from cotpc.data.dataset import MissingSubskillsError, synthetic_trajectories
+from cotpc.data import load_trajectories, save_trajectories
+from cotpc.data.dataset import MissingSubskillsError, Stats, WindowDataset, synthetic_trajectories
 from cotpc.policies import CheckpointError, load_policy
 from cotpc.training import TrainConfig, train
 
 TINY = dict(context=4, d_model=32, n_heads=4, n_layers=2, n_centres=8, batch_size=32, progress=False,
             val_every=10, log_every=5, warmup_iters=4)
+
+
+def window_dataset(data, context, cot_targets=(), episodes=None, **kw):
+    """(trajectories, WindowDataset) of a file's episodes (default: all), normalised with all episodes' statistics."""
+    trajs = load_trajectories(data)
+    stats = Stats.of(np.concatenate([e.obs[:-1] for e in trajs.episodes]),
+                     np.concatenate([e.actions for e in trajs.episodes]))
+    eps = list(range(len(trajs))) if episodes is None else episodes
+    return trajs, WindowDataset(trajs, eps, context, stats, cot_targets, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -68,14 +77,7 @@ def test_resume_with_other_config_or_data_is_a_clear_error(data, tmp_path):
 
 
 def test_state_noise_perturbs_only_the_input_states(data):
-    from cotpc.data import load_trajectories
-    from cotpc.data.dataset import Stats, WindowDataset
-
-    trajs = load_trajectories(data)
-    eps = list(range(len(trajs)))
-    stats = Stats.of(np.concatenate([e.obs[:-1] for e in trajs.episodes]),
-                     np.concatenate([e.actions for e in trajs.episodes]))
-    ds = WindowDataset(trajs, eps, 4, stats, ("next", "last"))
+    _, ds = window_dataset(data, 4, ("next", "last"))
     clean = ds.sample(64, torch.Generator().manual_seed(0))
     noisy = ds.sample(64, torch.Generator().manual_seed(0), state_noise=0.5)
     for k in ("actions", "cot", "timesteps", "valid", "cot_hide"):
@@ -85,11 +87,13 @@ def test_state_noise_perturbs_only_the_input_states(data):
     assert torch.equal(ds.sample(64, torch.Generator().manual_seed(0), state_noise=0.0)["states"], clean["states"])
 
 
-def test_state_noise_is_checked_and_kept_on_resume(data, tmp_path):
-    with pytest.raises(ValueError, match="--state-noise"):
-        train(TrainConfig(data=data, out=tmp_path / "bad", iters=2, state_noise=-0.1, **TINY))
-    train(TrainConfig(data=data, out=tmp_path / "run", iters=4, state_noise=0.2, **TINY))
-    with pytest.raises(CheckpointError, match="--state-noise"):
+@pytest.mark.parametrize("field, bad, used", [("state_noise", -0.1, 0.2), ("boundary_weight", -1.0, 2.0)])
+def test_sampling_option_is_checked_and_kept_on_resume(data, tmp_path, field, bad, used):
+    flag = "--" + field.replace("_", "-")
+    with pytest.raises(ValueError, match=flag):
+        train(TrainConfig(data=data, out=tmp_path / "bad", iters=2, **{field: bad}, **TINY))
+    train(TrainConfig(data=data, out=tmp_path / "run", iters=4, **{field: used}, **TINY))
+    with pytest.raises(CheckpointError, match=flag):
         train(TrainConfig(data=data, out=tmp_path / "run", iters=8, resume=True, **TINY))
 
 
@@ -124,33 +128,20 @@ def test_boundary_weights_mark_the_steps_around_each_subskill_boundary():
 
 
 def test_boundary_weight_draws_boundary_windows_that_much_more_often(data):
-    from cotpc.data import load_trajectories
-    from cotpc.data.dataset import Stats, WindowDataset, boundary_weights
+    from cotpc.data.dataset import boundary_weights
 
-    trajs = load_trajectories(data)
-    eps = list(range(len(trajs)))
-    stats = Stats.of(np.concatenate([e.obs[:-1] for e in trajs.episodes]),
-                     np.concatenate([e.actions for e in trajs.episodes]))
+    trajs, uniform = window_dataset(data, 4, ("next", "last"))
     near = np.concatenate([boundary_weights(e, 2.0, 1, "x") > 1 for e in trajs.episodes])
     assert 0.1 < near.mean() < 0.9
-    uniform = WindowDataset(trajs, eps, 4, stats, ("next", "last"))
-    same = WindowDataset(trajs, eps, 4, stats, ("next", "last"), boundary_weight=1.0)
+    _, same = window_dataset(data, 4, ("next", "last"), boundary_weight=1.0)
     a, b = (ds.sample(64, torch.Generator().manual_seed(0)) for ds in (uniform, same))
     assert all(torch.equal(a[k], b[k]) for k in a)  # weight 1 is the uniform sampler, draw for draw
-    weighted = WindowDataset(trajs, eps, 4, stats, ("next", "last"), boundary_weight=4.0, boundary_radius=1)
+    _, weighted = window_dataset(data, 4, ("next", "last"), boundary_weight=4.0, boundary_radius=1)
     gen = torch.Generator().manual_seed(0)
     ends = torch.cat([weighted.sample_ends(4096, gen) for _ in range(8)]).numpy()
     expected = 4 * near.mean() / (4 * near.mean() + (1 - near.mean()))
     assert abs(near[ends].mean() - expected) < 0.02, (near[ends].mean(), expected)
     assert ends.min() >= 0 and ends.max() < len(weighted) and len(np.unique(ends)) == len(weighted)
-
-
-def test_boundary_weight_is_checked_and_kept_on_resume(data, tmp_path):
-    with pytest.raises(ValueError, match="--boundary-weight"):
-        train(TrainConfig(data=data, out=tmp_path / "bad", iters=2, boundary_weight=-1.0, **TINY))
-    train(TrainConfig(data=data, out=tmp_path / "run", iters=4, boundary_weight=2.0, **TINY))
-    with pytest.raises(CheckpointError, match="--boundary-weight"):
-        train(TrainConfig(data=data, out=tmp_path / "run", iters=8, resume=True, **TINY))
 
 
 def test_compiled_training_tracks_eager_and_resumes_only_compiled_alike(data, tmp_path):
@@ -300,16 +291,11 @@ def test_validation_does_not_depend_on_the_chunk_size(data):
     """evaluate_loss averages the last-position metrics (what selects checkpoints) over every window whatever the
     chunk (the CPU default is smaller than a GPU's); the all-position terms are means of per-chunk masked means,
     so they move slightly with it."""
-    from cotpc.data import load_trajectories
-    from cotpc.data.dataset import Stats, WindowDataset
     from cotpc.policies import get_preset, make_model
     from cotpc.training.train import evaluate_loss
 
-    trajs = load_trajectories(data)
     cfg = get_preset("cotpc", context=4, d_model=32, n_heads=4, n_layers=2, n_centres=8)
-    stats = Stats.of(np.concatenate([ep.obs[:-1] for ep in trajs.episodes]),
-                     np.concatenate([ep.actions for ep in trajs.episodes]))
-    ds = WindowDataset(trajs, [0, 1, 2], cfg.window, stats, cfg.cot_targets, 0, "cpu", str(data), 0, 0)
+    trajs, ds = window_dataset(data, cfg.window, cfg.cot_targets, episodes=[0, 1, 2], where=str(data))
     torch.manual_seed(0)
     model = make_model(cfg, trajs.obs_dim, trajs.action_dim, 20)
     default, small = (evaluate_loss(model, ds, contextlib.nullcontext),
@@ -322,15 +308,9 @@ def test_validation_does_not_depend_on_the_chunk_size(data):
 def test_validation_of_a_sampling_family_scores_a_fixed_evenly_spaced_subset(data, tmp_path):
     """A family with ``validation_windows`` (the diffusion policies) is scored on that many held-out windows,
     evenly spaced over the set and the same each time; the others on every window."""
-    from cotpc.data import load_trajectories
-    from cotpc.data.dataset import Stats, WindowDataset
     from cotpc.training.train import evaluate_loss
 
-    trajs = load_trajectories(data)
-    eps = list(range(len(trajs)))
-    stats = Stats.of(np.concatenate([e.obs[:-1] for e in trajs.episodes]),
-                     np.concatenate([e.actions for e in trajs.episodes]))
-    ds = WindowDataset(trajs, eps, 4, stats)
+    _, ds = window_dataset(data, 4)
 
     class Recorder(torch.nn.Module):
         def __init__(self, limit):

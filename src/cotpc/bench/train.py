@@ -129,17 +129,15 @@ def policy_step(name: str, setting: str, bf16: Optional[bool], batch_scale: int 
     params = list(model.parameters())
     gen = torch.Generator(device=device).manual_seed(0)
     model.train()
-    step_model = model
 
-    def step():
-        train_step(step_model, params, ds.sample(pcfg.batch_size, gen), optimizer, scheduler, 1.0, autocast)
+    def step_of(step_model: torch.nn.Module) -> Callable[[], object]:
+        return lambda: train_step(step_model, params, ds.sample(pcfg.batch_size, gen), optimizer, scheduler, 1.0,
+                                  autocast)
 
     info = {"batch_size": pcfg.batch_size, "context": pcfg.window, "bf16": choice.bf16,
             "precision": choice.as_dict(), "params": sum(p.numel() for p in model.parameters()),
-            "compile": compile, "flops": count_flops(step)}  # counted on the eager step
-    if compile != "off":
-        step_model = torch.compile(model, mode=compile)
-    return step, info
+            "compile": compile, "flops": count_flops(step_of(model))}  # counted on the eager step
+    return step_of(model if compile == "off" else torch.compile(model, mode=compile)), info
 
 
 def load_official(path: Path):

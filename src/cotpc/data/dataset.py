@@ -97,7 +97,7 @@ def boundary_weights(ep, weight: float, radius: int, where: str) -> np.ndarray:
     n = ep.num_steps
     keys = key_state_indices(check_ends(ep.extras["subskill_ends"], n))[:-1]  # the last one is the episode's end
     t = np.arange(n)
-    near = (np.abs(t[:, None] - keys[None, :]) <= radius).any(1) if len(keys) else np.zeros(n, bool)
+    near = (np.abs(t[:, None] - keys[None, :]) <= radius).any(1)  # all False for a one-subskill episode
     return np.where(near, weight, 1.0)
 
 

@@ -162,10 +162,10 @@ SELECT_ON = "last_action_err"
 PROTOCOL_CHECKPOINTS = 20
 
 
-# The TrainConfig fields that decide how training windows are drawn and which kernels compute the step, with
-# their defaults (a training state saved before a field existed was trained with its default): a resumed run must
-# use the same ones to continue bit for bit.
-RESUME_MUST_MATCH = {"state_noise": 0.0, "boundary_weight": 1.0, "boundary_radius": 2, "compile": "off"}
+# The TrainConfig fields that decide how training windows are drawn and which kernels compute the step: a resumed
+# run must use the same ones to continue bit for bit (a training state saved before a field existed was trained
+# with the field's default).
+RESUME_MUST_MATCH = ("state_noise", "boundary_weight", "boundary_radius", "compile")
 
 
 def checkpoint_interval(config: TrainConfig) -> int:
@@ -400,7 +400,8 @@ def _train(config: TrainConfig) -> Path:
                 f"{run_dir}: cannot resume: the run was trained with another configuration or data "
                 f"(differences (saved, now): {diff or ''} dims {state['dims']} vs {[q, p]})"
             )
-        for name, default in RESUME_MUST_MATCH.items():  # sampling and kernels: a resumed run must match
+        for name in RESUME_MUST_MATCH:  # sampling and kernels: a resumed run must match
+            default = TrainConfig.__dataclass_fields__[name].default
             if state.get(name, default) != getattr(config, name):
                 raise CheckpointError(f"{run_dir}: cannot resume: the run was trained with --{name.replace('_', '-')} "
                                       f"{state.get(name, default)}, not {getattr(config, name)}")
