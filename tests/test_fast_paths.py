@@ -13,6 +13,7 @@ from cotpc.data.dataset import synthetic_trajectories
 from cotpc.policies import PRESETS, TransformerConfig
 from cotpc.policies.transformer import RowGatheredLinear
 from cotpc.policies.transformer import Layout, MaskedAttention, build_mask, mask_to_bias
+from cotpc.policies.transformer.backbone import LONG_WINDOW, attention
 from cotpc.training import TrainConfig, train
 from cotpc.training.precision import choose_precision, time_alternating
 
@@ -45,6 +46,40 @@ def test_cpu_attention_matches_sdpa_with_padding_and_random_cot_masks(dtype):
     assert y.dtype == dtype and torch.isfinite(y).all()
     torch.testing.assert_close(y.float(), ref, **tol)
     for a, b in ((dq, rq), (dk, rk), (dv, rv)):
+        torch.testing.assert_close(a.float(), b, **tol)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_long_windows_take_the_flash_kernel_and_stay_exact(dtype, monkeypatch):
+    """The official code's ManiSkill context of 60 (CoTPC: 179 tokens) runs SDPA in fp32 on a CPU, never
+    MaskedAttention, with values and gradients of the masked attention, its output in the input's dtype."""
+    T = 60
+    lay = Layout(context=T, n_cot=T, use_actions=True)
+    assert lay.length >= LONG_WINDOW
+    B, H, d = 3, 2, 8
+    g = torch.Generator().manual_seed(4)
+    valid = torch.ones(B, T, dtype=torch.bool)
+    valid[0, :40] = False
+    mask = build_mask(lay, valid, torch.randint(0, T, (B,), generator=g))
+    q, k, v = _qkv(B, H, lay.length, d, dtype)
+
+    def fail(*args, **kwargs):
+        raise AssertionError("MaskedAttention ran on a long window")
+
+    monkeypatch.setattr(MaskedAttention, "apply", fail)
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=dtype == torch.bfloat16):
+        y = attention(q, k, v, mask, mask_to_bias(mask), 0.0)
+    grad = torch.randn(y.shape, generator=g).to(dtype)
+    dq, dk, dv = torch.autograd.grad(y, (q, k, v), grad)
+    q2, k2, v2 = [t.detach().float().requires_grad_() for t in (q, k, v)]
+    scores = (q2 @ k2.transpose(-1, -2) * d ** -0.5).masked_fill(~mask, float("-inf"))
+    ref = torch.softmax(scores, -1) @ v2  # the definition, not the kernel under test
+    rq, rk, rv = torch.autograd.grad(ref, (q2, k2, v2), grad.float())
+    tol = dict(atol=1e-5, rtol=1e-5) if dtype == torch.float32 else dict(atol=2e-2, rtol=2e-2)
+    assert y.dtype == dtype and torch.isfinite(y).all()
+    torch.testing.assert_close(y.float(), ref, **tol)
+    for a, b in ((dq, rq), (dk, rk), (dv, rv)):
+        assert a.dtype == dtype
         torch.testing.assert_close(a.float(), b, **tol)
 
 

@@ -19,7 +19,8 @@ t-T+1+i. Who may attend to whom is decided by :func:`build_mask` from this layou
 
 Attention runs ``F.scaled_dot_product_attention`` on CUDA (fused kernels) and :class:`MaskedAttention`, a plain
 matmul + masked softmax with a hand-written backward, on a CPU: for our small heads (29 tokens x 16 dims) the CPU
-SDPA kernels are slower (measured in docs/performance.md), and their bf16 backward especially so.
+SDPA kernels are slower (measured in docs/performance.md), and their bf16 backward especially so. Long windows
+(``LONG_WINDOW`` tokens or more, e.g. the official code's ManiSkill context of 60) go to SDPA's flash kernel in fp32.
 
 Inference (``select_action``) runs :meth:`GPT.infer`: the same maths in fewer ops (no autograd bookkeeping, a
 looked-up padding mask, the last block on the tokens read only); at batch 1 a step is ~150 small ops, and on a
@@ -143,11 +144,27 @@ def mask_to_bias(mask: torch.Tensor) -> torch.Tensor:
     return bias.view(-1, 1, *mask.shape[-2:])
 
 
+# From this many keys on, a CPU trains faster with SDPA's flash kernel in fp32 than with MaskedAttention: the
+# (B, H, L, L) scores and probabilities MaskedAttention keeps outgrow the caches, and each of its passes over
+# them waits on memory, while the flash kernel works tile by tile and never stores them. Measured on one core of
+# a Zen 4 EPYC (docs/performance.md, "Long windows"): MaskedAttention in bf16 is faster up to ~90 tokens
+# (our contexts of 10-20: 29-59 tokens), the flash kernel from ~120 (the official code's ManiSkill context of
+# 60: 119 tokens for BeT and DT, 179 for CoTPC; 2-3x faster there).
+LONG_WINDOW = 100
+
+
 def attention(q, k, v, mask: torch.Tensor, bias: torch.Tensor | None, dropout_p: float) -> torch.Tensor:
-    """Masked multi-head attention: fused SDPA on CUDA (or with attention dropout), :class:`MaskedAttention`
-    on a CPU. ``bias`` is ``mask_to_bias(mask)`` (computed once per forward pass, shared by the blocks)."""
+    """Masked multi-head attention: fused SDPA on CUDA (or with attention dropout); on a CPU
+    :class:`MaskedAttention` for short windows and SDPA's flash kernel in fp32 for long ones (``LONG_WINDOW``
+    keys or more; in fp32 because its bf16 backward is slow on a CPU). ``bias`` is ``mask_to_bias(mask)``
+    (computed once per forward pass, shared by the blocks). The choice depends on shapes only, so a resumed run
+    takes the same kernels."""
     if q.device.type == "cuda" or dropout_p > 0 or bias is None:
         return F.scaled_dot_product_attention(q, k, v, attn_mask=mask, dropout_p=dropout_p)
+    if k.shape[-2] >= LONG_WINDOW:
+        with torch.autocast(q.device.type, enabled=False):
+            y = F.scaled_dot_product_attention(q.float(), k.float(), v.float(), attn_mask=mask)
+        return y.to(q.dtype)
     return MaskedAttention.apply(q, k, v, bias)
 
 
