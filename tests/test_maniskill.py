@@ -222,9 +222,11 @@ def test_reproduce_maniskill_end_to_end_and_resumes(stack_demos, tmp_path):
         out=tmp_path, envs=("StackCube-v1",), policies=("cotpc",), seeds=1, num=2, test=1, val=1,
         seen_episodes=1, curve_episodes=1, curve_every=2, paper_protocol=True, horizon=12, procs=1, backend="cpu",
         train=TrainConfig(data=Path("replaced by each task's demos"), iters=2, batch_size=8, d_model=32, n_layers=1,
-                          n_heads=2, n_centres=8, keep_checkpoints=True),
+                          n_heads=2, n_centres=8, keep_checkpoints=True, context=4),
     )
     results = run(settings)
+    run_config = json.loads((tmp_path / "StackCube-v1/runs/cotpc/seed0/config.json").read_text())
+    assert run_config["policy"]["context"] == 4  # the study's --context reaches every run
     r = results["StackCube-v1"]["cotpc"]
     for split in ("seen", "unseen"):
         assert len(r[split]["runs"]) == 1 and 0 <= r[split]["mean"] <= 100
@@ -236,6 +238,7 @@ def test_reproduce_maniskill_end_to_end_and_resumes(stack_demos, tmp_path):
         assert summary["success_once"] * 100 == r[split]["mean"]
     assert json.loads((tmp_path / "results.json").read_text())["meta"]["paper"]["StackCube-v1"]["results"]["cotpc"] == 86.0
     report = (tmp_path / "report.md").read_text()
+    assert "context 4" in report
     assert "## StackCube-v1" in report and "| cotpc |" in report and "is_cubeA_grasped" in report and "privileged key states" in report and (tmp_path / "learning_curves_StackCube-v1.png").exists()
     # --keep-checkpoints: the kept checkpoints (--curve-every 2: every second, counted back from the last) scored
     # on the validation seeds (the schedule curve), and the paper's protocol on the test seeds, labelled as such.

@@ -277,6 +277,7 @@ def write_report(results: dict, out: Path) -> Path:
         "",
         f"Command: `{meta.get('command') or 'cotpc reproduce maniskill'}`  ",
         f"{extra['iters']} training iterations per run at batch {extra.get('batch_size') or 'default (256; bc 32)'}, "
+        f"context {extra.get('context') or 'default (10)'}, "
         f"{extra.get('n_centres') or f'default ({GENERIC.n_centres})'} k-means centres, {s['seeds']} seed(s) per policy, "
         f"{s['control_mode']} actions, state observations. Checkpoints: {meta['checkpoint_selection']}.  ",
         f"This invocation {meta['wall_seconds'] / 60:.1f} min on {describe_hardware(meta['hardware'])}; "
@@ -393,6 +394,9 @@ class ManiSkillReproduce:
     """Training iterations per run (the paper's 200K)."""
     batch_size: Optional[int] = None
     """Training batch size (default: the paper's, 256; bc 32)."""
+    context: Optional[int] = None
+    """Context size T of the sequence policies (default: the paper's text, 10; the official code trains CoTPC on
+    ManiSkill2 with 60)."""
     n_centres: Optional[int] = None
     """k-means centres of the BeT-style heads (default: the paper's 128 for ManiSkill)."""
     num: Optional[int] = None
@@ -440,7 +444,7 @@ def reproduce(cfg: ManiSkillReproduce) -> dict:
         jobs=cfg.jobs,
         control_mode=cfg.control_mode, horizon=cfg.horizon, procs=cfg.procs, backend=cfg.backend,
         train=TrainConfig(data=cfg.out / "<task>" / "demos" / "train.h5", iters=cfg.iters, device=cfg.device,
-                          batch_size=cfg.batch_size, n_centres=cfg.n_centres, keep_checkpoints=cfg.keep_checkpoints,
+                          batch_size=cfg.batch_size, context=cfg.context, n_centres=cfg.n_centres, keep_checkpoints=cfg.keep_checkpoints,
                           compile=cfg.compile),
     ))
     print()
