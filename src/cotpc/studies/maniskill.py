@@ -444,8 +444,8 @@ def reproduce(cfg: ManiSkillReproduce) -> dict:
         jobs=cfg.jobs,
         control_mode=cfg.control_mode, horizon=cfg.horizon, procs=cfg.procs, backend=cfg.backend,
         train=TrainConfig(data=cfg.out / "<task>" / "demos" / "train.h5", iters=cfg.iters, device=cfg.device,
-                          batch_size=cfg.batch_size, context=cfg.context, n_centres=cfg.n_centres, keep_checkpoints=cfg.keep_checkpoints,
-                          compile=cfg.compile),
+                          batch_size=cfg.batch_size, context=cfg.context, n_centres=cfg.n_centres,
+                          keep_checkpoints=cfg.keep_checkpoints, compile=cfg.compile),
     ))
     print()
     print(f"{'task':<22}{'policy':<10}{'seen %':>10}{'unseen %':>10}   (success_once, mean over seeds)")
