@@ -467,6 +467,9 @@ class MazeReproduce:
     """Clip the global gradient norm of every run to this value (default: off, as the paper)."""
     compile: Literal["off", "default", "reduce-overhead"] = "off"
     """torch.compile every training run (`cotpc train --compile`; reduce-overhead = CUDA graphs, for a GPU)."""
+    bf16: Optional[bool] = None
+    """bf16 autocast for every run (`cotpc train --bf16`; default: each run times its own step in both precisions
+    and picks the faster, which on a busy machine can differ between runs)."""
 
 
 def reproduce(cfg: MazeReproduce) -> dict:
@@ -487,7 +490,7 @@ def reproduce(cfg: MazeReproduce) -> dict:
         train=TrainConfig(
             data=cfg.out / "demos" / "train.h5", iters=cfg.iters or quick.get("iters", FULL_ITERS), device=cfg.device,
             batch_size=cfg.batch_size or quick.get("batch_size"), n_centres=cfg.n_centres or quick.get("n_centres"),
-            keep_checkpoints=cfg.keep_checkpoints, cot_weight=cfg.cot_weight, compile=cfg.compile,
+            keep_checkpoints=cfg.keep_checkpoints, cot_weight=cfg.cot_weight, compile=cfg.compile, bf16=cfg.bf16,
             **({"grad_clip": cfg.grad_clip} if cfg.grad_clip is not None else {})),
     )
     results = run(settings)
