@@ -15,7 +15,7 @@ def test_reproduce_kitchen_end_to_end_and_reuses(tmp_path, capsys):
     # bc only: a transformer's 280-step rollouts take minutes on a shared 2-core machine
     argv = ["reproduce", "kitchen", "--out", str(out), "--seeds", "1", "--iters", "2", "--policies", "bc",
             "--train-demos", "2", "--val-demos", "1", "--test-demos", "1", "--batch-size", "4", "--n-centres", "8",
-            "--device", "cpu"]
+            "--device", "cpu", "--bf16", "False"]
     cotpc_main(argv)
     results = json.loads((out / "results.json").read_text())
     for split, n in (("seen", 2), ("val", 1), ("unseen", 1)):
@@ -28,6 +28,7 @@ def test_reproduce_kitchen_end_to_end_and_reuses(tmp_path, capsys):
     meta = results["meta"]
     assert meta["paper"]["success"]["cotpc"] == 25.6 and meta["paper"]["avg_completed"]["bet"] == 1.8
     assert meta["n_centres"] == 8 and meta["settings"]["iters"] == 2
+    assert json.loads((out / "runs" / "bc" / "seed0" / "config.json").read_text())["train"]["bf16"] is False
     # discovery is scored against the demonstrator's sub-task boundaries (4 per demo)
     assert meta["subskills"]["true"] == 8 and 0.0 <= meta["subskills"]["precision"] <= 1.0
     report = (out / "report.md").read_text()

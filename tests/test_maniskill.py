@@ -264,6 +264,19 @@ def test_reproduce_maniskill_end_to_end_and_resumes(stack_demos, tmp_path):
     assert (weights.stat().st_mtime_ns, evals.stat().st_mtime_ns) == stamps
 
 
+def test_reproduce_flags_reach_every_run():
+    import tyro
+
+    from cotpc.studies.maniskill import ManiSkillReproduce, study_settings
+
+    def parse(argv):  # as `cotpc reproduce maniskill ARGV` parses them
+        return tyro.cli(ManiSkillReproduce, args=argv)
+
+    train = study_settings(parse(["--context", "60", "--bf16", "False", "--batch-size", "64"])).train
+    assert (train.context, train.bf16, train.batch_size) == (60, False, 64)
+    assert study_settings(parse([])).train.bf16 is None  # default: each run races the two precisions
+
+
 def test_maniskill_report_for_a_task_without_stage_flags(tmp_path):
     from cotpc.studies.maniskill import PAPER, write_report
 

@@ -69,6 +69,9 @@ class KitchenReproduce:
     """Training runs at once, each in its own process with cores / jobs threads."""
     device: str = "auto"
     """Training and evaluation device (auto: cuda if available)."""
+    bf16: Optional[bool] = None
+    """bf16 autocast for every run (`cotpc train --bf16`; default: each run times its own step in both precisions
+    and picks the faster, which on a busy machine can differ between runs)."""
 
 
 def reproduce(cfg: KitchenReproduce) -> dict:
@@ -99,7 +102,7 @@ def reproduce(cfg: KitchenReproduce) -> dict:
 
     device = resolve_device(cfg.device)
     template = TrainConfig(data=demos / "train.h5", iters=cfg.iters, device=cfg.device, batch_size=cfg.batch_size,
-                           n_centres=cfg.n_centres)
+                           n_centres=cfg.n_centres, bf16=cfg.bf16)
     runs = [(name, seed) for name in cfg.policies for seed in range(cfg.seeds)]
     grid = train_and_evaluate(out, template, runs, evaluations,
                               jobs=cfg.jobs, device=device, step="[3/5]", after_run=print_run)

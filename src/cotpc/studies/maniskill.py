@@ -433,11 +433,14 @@ class ManiSkillReproduce:
     """Training device (auto: cuda if available)."""
     compile: Literal["off", "default", "reduce-overhead"] = "off"
     """torch.compile every training run (`cotpc train --compile`; reduce-overhead = CUDA graphs, for a GPU)."""
+    bf16: Optional[bool] = None
+    """bf16 autocast for every run (`cotpc train --bf16`; default: each run times its own step in both precisions
+    and picks the faster, which on a busy machine can differ between runs)."""
 
 
-def reproduce(cfg: ManiSkillReproduce) -> dict:
-    """``cotpc reproduce maniskill``: run the study of the flags, print a summary."""
-    results = run(ManiSkillStudySettings(
+def study_settings(cfg: ManiSkillReproduce) -> ManiSkillStudySettings:
+    """The study the flags ask for."""
+    return ManiSkillStudySettings(
         out=cfg.out, envs=tuple(cfg.envs), policies=tuple(cfg.policies), seeds=cfg.seeds,
         num=cfg.num, test=cfg.test, val=cfg.val, seen_episodes=cfg.seen_episodes or None,
         curve_episodes=cfg.curve_episodes or None, curve_every=cfg.curve_every, paper_protocol=cfg.paper_protocol,
@@ -445,8 +448,13 @@ def reproduce(cfg: ManiSkillReproduce) -> dict:
         control_mode=cfg.control_mode, horizon=cfg.horizon, procs=cfg.procs, backend=cfg.backend,
         train=TrainConfig(data=cfg.out / "<task>" / "demos" / "train.h5", iters=cfg.iters, device=cfg.device,
                           batch_size=cfg.batch_size, context=cfg.context, n_centres=cfg.n_centres,
-                          keep_checkpoints=cfg.keep_checkpoints, compile=cfg.compile),
-    ))
+                          keep_checkpoints=cfg.keep_checkpoints, compile=cfg.compile, bf16=cfg.bf16),
+    )
+
+
+def reproduce(cfg: ManiSkillReproduce) -> dict:
+    """``cotpc reproduce maniskill``: run the study of the flags, print a summary."""
+    results = run(study_settings(cfg))
     print()
     print(f"{'task':<22}{'policy':<10}{'seen %':>10}{'unseen %':>10}   (success_once, mean over seeds)")
     for env_id, by_policy in results.items():
