@@ -306,9 +306,15 @@ def test_validation_does_not_depend_on_the_chunk_size(data):
 
 
 def test_validation_of_a_sampling_family_scores_a_fixed_evenly_spaced_subset(data, tmp_path):
-    """A family with ``validation_windows`` (the diffusion policies) is scored on that many held-out windows,
-    evenly spaced over the set and the same each time; the others on every window."""
+    """A family with ``validation_windows`` (the transformers and the diffusion policies) is scored on that many
+    held-out windows, evenly spaced over the set and the same each time; the others on every window."""
+    from cotpc.policies import get_preset, make_model
     from cotpc.training.train import evaluate_loss
+
+    # the caps that keep validation a small share of a run on a large file (docs/performance.md)
+    caps = {name: getattr(make_model(get_preset(name), 4, 2, 20), "validation_windows", None)
+            for name in ("bc", "bet", "cotpc", "dp")}
+    assert caps == {"bc": None, "bet": 1024, "cotpc": 1024, "dp": 256}
 
     _, ds = window_dataset(data, 4)
 

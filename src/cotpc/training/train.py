@@ -97,8 +97,9 @@ class TrainConfig:
     val_every: int = 1000
     """Validation interval in iterations (also at the end)."""
     val_windows: Optional[int] = None
-    """Score at most this many held-out windows, evenly spaced, at each validation (default: every window, or the
-    policy family's cap: 256 for the diffusion policies, whose validation samples a denoising chain per window)."""
+    """Score at most this many held-out windows, evenly spaced, at each validation (default: the policy family's
+    cap: 1024 for the transformers, 256 for the diffusion policies, whose validation samples a denoising chain per
+    window; every window for the MLP)."""
     ckpt_every: Optional[int] = None
     """Checkpoint interval in iterations (also at the end). Default: a tenth of the run (at most 5000), or a
     twentieth with --keep-checkpoints (the paper's last-20-checkpoints protocol): a killed run loses at most that."""

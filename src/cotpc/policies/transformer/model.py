@@ -70,6 +70,11 @@ def _masked_mean(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
 
 
 class TransformerPolicy(nn.Module):
+    # Validation scores at most this many held-out windows, evenly spaced (evaluate_loss): with every window of a
+    # 1600-demo maze file (~6,600) the ten validations of a 1500-iteration run took 24% of its wall time
+    # (docs/performance.md); 1024 windows keep it under a tenth. `cotpc train --val-windows` overrides it.
+    validation_windows = 1024
+
     def __init__(self, cfg: TransformerConfig, obs_dim: int, action_dim: int, max_timestep: int):
         super().__init__()
         self.cfg, self.obs_dim, self.action_dim = cfg, obs_dim, action_dim
