@@ -1,0 +1,96 @@
+"""Summarise a validation screen of maze runs against a reference, as in docs/results/maze.md.
+
+    python scripts/screen-summary.py DIR [--reference REF_DIR | --reference-json NAME] [--policies cotpc bet]
+        [--seeds 0 1 2 3 4 5] [--add NAME --how TEXT]
+
+DIR holds P/seedS run directories, each scored with `cotpc eval DIR/P/seedS --split val --out
+DIR/P/seedS/eval_val.json`. Prints each policy's validation success per seed and mean +- std (ddof 0), the
+paired difference between the first two policies, and each policy against the same seeds of the reference
+(a run directory of the same layout, or a screen already stored in docs/results/maze-screens.json) +- its
+standard error. ``--add NAME`` stores the runs in that JSON under NAME (``--how`` says what differs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+SCREENS = Path(__file__).resolve().parent.parent / "docs" / "results" / "maze-screens.json"
+
+
+def read_runs(root: Path, policies: list[str], seeds: list[int]) -> dict[str, dict]:
+    runs = {}
+    for p in policies:
+        for s in seeds:
+            run = root / p / f"seed{s}"
+            scored = run / "eval_val.json"
+            if not scored.is_file():
+                continue
+            entry = {"val": json.loads(scored.read_text())["summary"]["success_rate"]}
+            val = json.loads((run / "config.json").read_text()).get("val") or {}
+            if "last_action_err" in val:
+                entry["last_action_err"] = val["last_action_err"]
+            runs[f"{p}/seed{s}"] = entry
+    return runs
+
+
+def mean_std(xs: list[float]) -> tuple[float, float]:
+    m = sum(xs) / len(xs)
+    return m, math.sqrt(sum((x - m) ** 2 for x in xs) / len(xs))
+
+
+def paired(a: dict[int, float], b: dict[int, float]) -> str:
+    common = sorted(set(a) & set(b))
+    if len(common) < 2:
+        return "n/a"
+    d = [a[s] - b[s] for s in common]
+    m, sd = mean_std(d)
+    return f"{m:+.1f} +- {sd * math.sqrt(len(d) / (len(d) - 1)) / math.sqrt(len(d)):.1f} ({len(d)} seeds)"
+
+
+def per_seed(runs: dict[str, dict], policy: str) -> dict[int, float]:
+    return {int(k.split("seed")[1]): 100 * v["val"] for k, v in runs.items() if k.split("/")[0] == policy}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("dir", type=Path)
+    ap.add_argument("--reference", type=Path, help="run directory of the reference screen")
+    ap.add_argument("--reference-json", help="name of a screen in docs/results/maze-screens.json")
+    ap.add_argument("--policies", nargs="+", default=["cotpc", "bet"])
+    ap.add_argument("--seeds", nargs="+", type=int, default=list(range(12)))
+    ap.add_argument("--add", help="store these runs in maze-screens.json under this name")
+    ap.add_argument("--how", default="", help="what the screen changes (stored with --add)")
+    args = ap.parse_args()
+
+    runs = read_runs(args.dir, args.policies, args.seeds)
+    if not runs:
+        raise SystemExit(f"no scored runs (P/seedS/eval_val.json) under {args.dir}")
+    ref = {}
+    if args.reference:
+        ref = read_runs(args.reference, args.policies, args.seeds)
+    elif args.reference_json:
+        ref = json.loads(SCREENS.read_text())["screens"][args.reference_json]["runs"]
+    for p in args.policies:
+        got = per_seed(runs, p)
+        if not got:
+            continue
+        m, sd = mean_std(list(got.values()))
+        line = f"{p}: {' / '.join(f'{v:.0f}' for v in got.values())} -> {m:.1f} +- {sd:.1f}"
+        if ref:
+            line += f"; minus reference {paired(got, per_seed(ref, p))}"
+        print(line)
+    if len(args.policies) >= 2:
+        a, b = args.policies[:2]
+        print(f"{a} minus {b}: {paired(per_seed(runs, a), per_seed(runs, b))}")
+    if args.add:
+        data = json.loads(SCREENS.read_text())
+        data["screens"][args.add] = {"runs_under": str(args.dir), "how": args.how, "runs": runs}
+        SCREENS.write_text(json.dumps(data, indent=1) + "\n")
+        print(f"stored under {args.add!r} in {SCREENS}")
+
+
+if __name__ == "__main__":
+    main()
