@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import statistics
 from pathlib import Path
 
 SCREENS = Path(__file__).resolve().parent.parent / "docs" / "results" / "maze-screens.json"
@@ -36,18 +37,12 @@ def read_runs(root: Path, policies: list[str], seeds: list[int]) -> dict[str, di
     return runs
 
 
-def mean_std(xs: list[float]) -> tuple[float, float]:
-    m = sum(xs) / len(xs)
-    return m, math.sqrt(sum((x - m) ** 2 for x in xs) / len(xs))
-
-
 def paired(a: dict[int, float], b: dict[int, float]) -> str:
     common = sorted(set(a) & set(b))
     if len(common) < 2:
         return "n/a"
     d = [a[s] - b[s] for s in common]
-    m, sd = mean_std(d)
-    return f"{m:+.1f} +- {sd * math.sqrt(len(d) / (len(d) - 1)) / math.sqrt(len(d)):.1f} ({len(d)} seeds)"
+    return f"{statistics.mean(d):+.1f} +- {statistics.stdev(d) / math.sqrt(len(d)):.1f} ({len(d)} seeds)"
 
 
 def per_seed(runs: dict[str, dict], policy: str) -> dict[int, float]:
@@ -77,8 +72,8 @@ def main() -> None:
         got = per_seed(runs, p)
         if not got:
             continue
-        m, sd = mean_std(list(got.values()))
-        line = f"{p}: {' / '.join(f'{v:.0f}' for v in got.values())} -> {m:.1f} +- {sd:.1f}"
+        xs = list(got.values())
+        line = f"{p}: {' / '.join(f'{v:.0f}' for v in xs)} -> {statistics.mean(xs):.1f} +- {statistics.pstdev(xs):.1f}"
         if ref:
             line += f"; minus reference {paired(got, per_seed(ref, p))}"
         print(line)

@@ -305,7 +305,7 @@ def test_validation_does_not_depend_on_the_chunk_size(data):
         assert default[k] == pytest.approx(small[k], rel=1e-5 if k.startswith("last_") else 1e-2, abs=1e-7), k
 
 
-def test_validation_of_a_sampling_family_scores_a_fixed_evenly_spaced_subset(data, tmp_path):
+def test_validation_of_a_capped_family_scores_a_fixed_evenly_spaced_subset(data, tmp_path):
     """A family with ``validation_windows`` (the transformers and the diffusion policies) is scored on that many
     held-out windows, evenly spaced over the set and the same each time; the others on every window."""
     from cotpc.policies import get_preset, make_model
