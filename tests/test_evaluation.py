@@ -141,6 +141,21 @@ def test_eval_cli_on_a_trained_run(demo_dir, tmp_path, capsys):
     cotpc_main(["eval", str(run), "--split", "val"])
     saved = json.loads((run / "eval_val.json").read_text())
     assert saved["summary"]["episodes"] == 5 and all(1_000_000 <= e["seed"] < 2_000_000 for e in saved["episodes"])
+    with pytest.raises(SystemExit, match="--compile: .*transformer policies"):
+        cotpc_main(["eval", str(run), "--split", "val", "--episodes", "1", "--compile"])
+
+
+def test_eval_cli_compiled_transformer_acts_as_the_eager_one(demo_dir, tmp_path):
+    run = tmp_path / "bet"  # a transformer needing no subskills in the data
+    cotpc_main(["train", "--data", str(demo_dir / "train.h5"), "--policy", "bet", "--out", str(run), "--iters", "3",
+                "--batch-size", "8", "--bf16", "False", "--threads", "1", "--no-progress"])
+    cotpc_main(["eval", str(run), "--split", "val", "--episodes", "2"])
+    eager = json.loads((run / "eval_val.json").read_text())
+    cotpc_main(["eval", str(run), "--split", "val", "--episodes", "2", "--compile", "--out", str(tmp_path / "c.json")])
+    compiled = json.loads((tmp_path / "c.json").read_text())
+    assert (eager["summary"]["compile"], compiled["summary"]["compile"]) == (False, True)
+    for a, b in zip(eager["episodes"], compiled["episodes"], strict=True):  # actions agree to ~1e-7
+        assert (a["seed"], a["success"]) == (b["seed"], b["success"])
 
 
 def test_eval_cli_sampler_steps_for_a_diffusion_policy(demo_dir, tmp_path):

@@ -75,10 +75,10 @@ class ReferencePolicy:
         return (a * norm.act_std + norm.act_mean).numpy()
 
 
-def run_both(model, B, steps=16, resets=((7, [0, 2]), (11, [1]))):
+def run_both(model, B, steps=16, resets=((7, [0, 2]), (11, [1])), compile=False):
     """Act with the policy and the reference for ``steps`` steps, resetting some environments on the way;
     return the largest action difference."""
-    pol, ref = Policy(model), ReferencePolicy(model, B)
+    pol, ref = Policy(model, compile=compile), ReferencePolicy(model, B)
     rng = np.random.default_rng(1)
     worst = 0.0
     for step in range(steps):
@@ -118,6 +118,25 @@ def test_maniskill_shape_matches_at_batch_1():
         for prm in model.parameters():
             prm.add_(0.05 * torch.randn_like(prm))
     assert run_both(model, 1, steps=14) < 1e-5
+
+
+@pytest.mark.parametrize("name", ["cotpc", "decoupled"])
+def test_compiled_select_action_equals_the_training_forward_in_one_graph(name):
+    """``compile=True`` (``cotpc eval --compile``): the reference's actions (to float tolerance, not bit for bit)
+    from one graph per batch size: the first steps of an episode (a partly filled context) and resets of some
+    environments never recompile (dynamo raises on a recompilation here)."""
+    from torch._dynamo.utils import counters
+
+    torch._dynamo.reset()
+    counters.clear()
+    with torch._dynamo.config.patch(error_on_recompile=True):
+        assert run_both(tiny_model(name), 3, compile=True) < 1e-5
+    assert counters["stats"]["unique_graphs"] == 1  # the compiled graph ran, whole (no graph break)
+
+
+def test_compile_is_refused_for_policies_without_the_transformer_network():
+    with pytest.raises(ValueError, match="transformer policies.*Markovian MLP"):
+        Policy(tiny_model("bc"), compile=True)
 
 
 def test_predict_on_a_batch_dict_with_any_padding_equals_the_training_forward():

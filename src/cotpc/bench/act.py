@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import statistics
 import time
-import types
 from dataclasses import asdict, dataclass
 from typing import Literal, Optional
 
@@ -38,8 +37,9 @@ class Config:
     """torch CPU threads (default: torch's)."""
     variants: tuple[Literal["eager", "compiled", "bf16"], ...] = ("eager",)
     """Ways to run the transformer policies' inference, timed in alternating rounds (the ratio is the figure to
-    read on a shared machine): ``eager`` (what select_action runs), ``compiled`` (``torch.compile`` of the
-    network call, inductor with weight freezing; its compile time is reported), ``bf16`` (bf16 autocast)."""
+    read on a shared machine): ``eager`` (what select_action runs by default), ``compiled`` (``Policy(...,
+    compile=True)``, ``cotpc eval --compile``: one ``torch.compile`` graph of the network call, inductor with weight
+    freezing and its C++ wrapper; the compile time is reported), ``bf16`` (bf16 autocast)."""
     rounds: int = 1
     """Alternating rounds over the variants (each round times ``calls`` calls per variant; the median of all)."""
     json: bool = False
@@ -53,14 +53,10 @@ def bench(name: str, batch: int, calls: int, variants: tuple[str, ...] = ("eager
     obs = np.random.default_rng(0).normal(size=(batch, 43)).astype(np.float32)
     runners, extra = {}, {}
     for variant in variants:
-        pol = Policy(model)
         if variant != "eager" and not hasattr(model, "predict_window"):
             continue  # the variants concern the transformer family's network call
+        pol = Policy(model, compile=variant == "compiled")  # what `cotpc eval --compile` runs
         if variant == "compiled":
-            # select_action reaches the network through model.predict_window only; freezing: the weights are
-            # constants at inference, so inductor folds and pre-packs them
-            compiled = torch.compile(model.predict_window, dynamic=False, options={"freezing": True})
-            pol.model = types.SimpleNamespace(predict_window=compiled)
             t = time.perf_counter()
             for _ in range(cfg.window + 5):
                 pol.select_action(obs)

@@ -10,7 +10,7 @@ from typing import Literal, Optional
 
 import tyro
 
-from cotpc.policies.policy import load_policy
+from cotpc.policies.policy import CheckpointError, load_policy
 
 
 @dataclass
@@ -64,11 +64,15 @@ class EvalRequest:
     action_horizon: Optional[int] = None
     """Actions of each planned chunk executed before planning again, for the diffusion policies (dp, dd), instead
     of the run's ``action_horizon`` (1 = plan at every step, closed loop). The file gets an ``_ahN`` suffix."""
+    compile: bool = False
+    """``torch.compile`` the transformer policies' network call (one compile of ~10-20 s per batch size on a CPU;
+    actions agree with the eager path to ~1e-7, not bit for bit, so a closed-loop rollout can rarely differ).
+    Recorded in the evaluation file."""
 
     def inference_settings(self) -> dict:
         """Every inference setting of the request by its flag's name, None where the run's own is kept (recorded
         in the evaluation file)."""
-        return {attr: getattr(self, attr) for attr, *_ in INFERENCE_SETTINGS}
+        return {**{attr: getattr(self, attr) for attr, *_ in INFERENCE_SETTINGS}, "compile": self.compile}
 
     def inference_overrides(self) -> dict:
         """The inference settings this request replaces in the run's config ({config field: value})."""
@@ -100,11 +104,16 @@ INFERENCE_SETTINGS = (
 )
 
 
-def load_for_eval(run_dir: str | Path, device: str = "cpu", overrides: Optional[dict] = None):
+def load_for_eval(run_dir: str | Path, device: str = "cpu", overrides: Optional[dict] = None, compile: bool = False):
     """:func:`cotpc.load_policy`, with the inference settings in ``overrides`` ({config field: value}, from
     :meth:`EvalRequest.inference_overrides`) replacing the run's (module level, so a process pool can pickle a
-    ``functools.partial`` of it)."""
-    policy = load_policy(run_dir, device=device)
+    ``functools.partial`` of it); ``compile``: :attr:`EvalRequest.compile`."""
+    try:
+        policy = load_policy(run_dir, device=device, compile=compile)
+    except ValueError as e:
+        if not compile or isinstance(e, CheckpointError):
+            raise
+        raise SystemExit(f"cotpc eval: --compile: {e}") from None
     flags = {field: (flag, families) for _, flag, field, families in INFERENCE_SETTINGS}
     for field, value in (overrides or {}).items():
         flag, families = flags[field]

@@ -124,7 +124,7 @@ class Policy:
     the last window index (tested in tests/test_inference_speedpath.py).
     """
 
-    def __init__(self, model: torch.nn.Module, info: dict | None = None, device: str = "cpu"):
+    def __init__(self, model: torch.nn.Module, info: dict | None = None, device: str = "cpu", compile: bool = False):
         self.model = model.to(device).eval()
         self.info = info or {}
         self.device = torch.device(device)
@@ -132,6 +132,8 @@ class Policy:
         self.T = self.cfg.window
         self._transformer = isinstance(model, TransformerPolicy)
         self._chunked = hasattr(model, "predict_chunk")  # action chunks with a queue per environment
+        self.compiled = compile
+        self._network = self._compile_network() if compile else None  # None: the eager predict_window
         n = model.norm
         self._obs_mean, self._obs_std, self._act_mean, self._act_std = n.obs_mean, n.obs_std, n.act_mean, n.act_std
         if self.device.type == "cpu" or self._chunked:  # NumPy views of the same buffers (copies on a GPU)
@@ -178,6 +180,21 @@ class Policy:
             self._actions = torch.zeros(B, self.T, self.action_dim, device=self.device)
         self._t = np.zeros(B, dtype=np.int64)
         self._n = np.zeros(B, dtype=np.int64)
+
+    def _compile_network(self):
+        """``torch.compile`` of the transformer's inference call: one whole graph per batch size (``fullgraph``,
+        static shapes; the padding of a partly filled context is always passed as ``n_prev``, so the start of an
+        episode takes the same graph). On a CPU with weight freezing (weights and masks become constants, so
+        inductor folds and pre-packs them) and inductor's C++ wrapper: at batch 1 a step is ~150 small ops whose
+        dispatch costs more than their arithmetic (docs/performance.md). Compiles lazily, on the first call of
+        each batch size (~10-20 s on a CPU). Actions agree with the eager path to ~1e-7, not bit for bit."""
+        if not self._transformer:
+            raise ValueError(f"compile=True is for the transformer policies; {self.cfg.name!r} runs eager "
+                             f"({'it plans chunks with a sampler' if self._chunked else 'a Markovian MLP'})")
+        if self.device.type == "cpu":
+            return torch.compile(self.model.predict_window, fullgraph=True, dynamic=False,
+                                 options={"freezing": True, "cpp_wrapper": True})
+        return torch.compile(self.model.predict_window, fullgraph=True, dynamic=False)  # unmeasured on a GPU
 
     @torch.inference_mode()
     def select_action(self, obs) -> np.ndarray:
@@ -249,19 +266,32 @@ class Policy:
         """Normalised actions (B, p) for the windows ``states`` (B, T, q) and earlier actions ``prev`` (B, T-1, p);
         advances the step counters."""
         if self._transformer:
-            t = self._t[:, None] + self._window_steps  # (B, T); the network clamps them to its table
-            n_prev = None  # None: every context is full, the constant mask applies
-            if self.T > 1 and self._n.min() < self.T - 1:  # some context still starts inside the window
-                n_prev = torch.from_numpy(np.minimum(self._n, self.T - 1)).to(self.device)
-            a = self.model.predict_window(states, prev, torch.from_numpy(t).to(self.device), n_prev)
+            t = torch.from_numpy(self._t[:, None] + self._window_steps).to(self.device)  # (B, T); clamped inside
+            if self._network is not None:
+                a = self._compiled_call(states, prev, t)
+            else:
+                n_prev = None  # None: every context is full, the constant mask applies
+                if self.T > 1 and self._n.min() < self.T - 1:  # some context still starts inside the window
+                    n_prev = torch.from_numpy(np.minimum(self._n, self.T - 1)).to(self.device)
+                a = self.model.predict_window(states, prev, t, n_prev)
         else:  # the Markovian MLP reads the current state only
             a = self.model.predict({"states": states})
         self._t += 1
         self._n += 1
         return a
 
+    def _compiled_call(self, states: torch.Tensor, prev: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        n_prev = torch.from_numpy(np.minimum(self._n, self.T - 1)).to(self.device)
+        try:
+            return self._network(states, prev, t, n_prev)
+        except torch._dynamo.exc.BackendCompilerFailed as e:
+            raise RuntimeError(
+                "select_action: compiling the policy failed (on a CPU torch.compile needs a C++ compiler, g++ or "
+                f"$CXX); run without --compile / compile=True. Cause: {str(e).splitlines()[0][:300]}") from e
 
-def load_policy(run_dir: str | os.PathLike, device: str = "cpu") -> Policy:
-    """Load ``run_dir`` (``config.json`` + ``model.safetensors``) as a :class:`Policy`."""
+
+def load_policy(run_dir: str | os.PathLike, device: str = "cpu", compile: bool = False) -> Policy:
+    """Load ``run_dir`` (``config.json`` + ``model.safetensors``) as a :class:`Policy` (``compile``: see
+    :meth:`Policy._compile_network`)."""
     model, info = load_model(run_dir, device)
-    return Policy(model, info, device)
+    return Policy(model, info, device, compile=compile)

@@ -170,12 +170,13 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
     if req.rules not in (None, "paper"):
         raise SystemExit(f"cotpc eval: {env_id} has no rule variants (--rules {req.rules})")
     demos, weights = req.demos_and_weights(info)
-    policy = load_for_eval(weights, req.device, req.inference_overrides())
+    policy = load_for_eval(weights, req.device, req.inference_overrides(), compile=req.compile)
     result = evaluate(policy, demos, req.split, req.episodes, req.horizon, videos=req.num_videos if req.video else 0)
     if req.video:
         for path in write_videos(result, req.video):
             print(f"wrote {path}")
-    result.meta.update({"run": str(req.run), "checkpoint": req.checkpoint, "demos": str(demos)})
+    result.meta.update({"run": str(req.run), "checkpoint": req.checkpoint, "demos": str(demos),
+                        **req.inference_settings()})
     out = req.out or req.run / f"eval_{req.split}{req.variant_suffix()}.json"
     result.to_json(out)
     s = result.summary()

@@ -279,7 +279,7 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
         raise SystemExit("cotpc eval: --video needs a render device for ManiSkill3 tasks; not supported yet")
     demos, weights = req.demos_and_weights(info)
     device = req.device if req.backend != "cpu" else "cpu"
-    load = policy_loader(weights, device, req.inference_overrides())
+    load = policy_loader(weights, device, req.inference_overrides(), compile=req.compile)
     result = evaluate(load, demos, req.split, req.episodes, horizon=req.horizon, procs=req.procs,
                       backend=req.backend, num_envs=req.num_envs)
     if result.env_id != env_id:
@@ -299,10 +299,11 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
     return s
 
 
-def policy_loader(run_dir: str | Path, device: str = "cpu", overrides: dict | None = None) -> Callable[[], Any]:
+def policy_loader(run_dir: str | Path, device: str = "cpu", overrides: dict | None = None,
+                  compile: bool = False) -> Callable[[], Any]:
     """A picklable factory loading ``run_dir`` with :func:`cotpc.load_policy` (one copy per process), with the
     inference settings in ``overrides`` replacing the run's (:func:`cotpc.evaluation.request.load_for_eval`)."""
-    return functools.partial(load_for_eval, str(run_dir), device, overrides)
+    return functools.partial(load_for_eval, str(run_dir), device, overrides, compile)
 
 
 class ReplayPolicy:

@@ -194,7 +194,7 @@ def evaluate_run(req, info: dict, env_id: str) -> dict:
         raise SystemExit(f"cotpc eval: unknown Moving Maze rules {rules_name!r}; expected one of {', '.join(RULES)}")
     rules = RULES[rules_name]
     demos, weights = req.demos_and_weights(info)
-    policy = load_for_eval(weights, req.device, req.inference_overrides())
+    policy = load_for_eval(weights, req.device, req.inference_overrides(), compile=req.compile)
     result = evaluate(policy, demos, req.split, req.episodes, req.video, req.num_videos, rules.deadly_gaps,
                       rules.min_action)
     result.meta.update({"run": str(req.run), "checkpoint": req.checkpoint, "demos": str(demos),

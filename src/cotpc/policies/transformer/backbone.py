@@ -307,7 +307,9 @@ class GPT(nn.Module):
         return self.base_bias
 
     def embed(self, states: torch.Tensor, actions: torch.Tensor | None, timesteps: torch.Tensor) -> torch.Tensor:
-        """The input tokens (B, L, d) of :meth:`forward`, written in place into one buffer (no stack and cat)."""
+        """The input tokens (B, L, d) of :meth:`forward`, written into one buffer (no stack and cat). Slice
+        assignment rather than ``torch.add(..., out=strided view)``: the same speed eager, and ``torch.compile``
+        traces it as one graph (an ``out=`` into a non-contiguous view breaks the graph)."""
         B, T, _ = states.shape
         lay = self.layout
         C = lay.C
@@ -316,11 +318,11 @@ class GPT(nn.Module):
         if C:
             x[:, :C] = self.cot_tokens
         if lay.use_actions:  # s0 a0 s1 a1 ... s(T-1): states at every second token, actions in between
-            torch.add(run_mlp(self.state_enc, states), pos, out=x[:, C::2])
+            x[:, C::2] = run_mlp(self.state_enc, states) + pos
             if T > 1:
-                torch.add(run_mlp(self.action_enc, actions), pos[:, :-1], out=x[:, C + 1::2])
+                x[:, C + 1::2] = run_mlp(self.action_enc, actions) + pos[:, :-1]
         else:
-            torch.add(run_mlp(self.state_enc, states), pos, out=x[:, C:])
+            x[:, C:] = run_mlp(self.state_enc, states) + pos
         return x
 
     def infer(self, states: torch.Tensor, actions: torch.Tensor | None, timesteps: torch.Tensor, bias: torch.Tensor,
