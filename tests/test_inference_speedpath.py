@@ -129,8 +129,13 @@ def test_compiled_select_action_equals_the_training_forward_in_one_graph(name):
 
     torch._dynamo.reset()
     counters.clear()
+    model = tiny_model(name)
     with torch._dynamo.config.patch(error_on_recompile=True):
-        assert run_both(tiny_model(name), 3, compile=True) < 1e-5
+        assert run_both(model, 3, compile=True) < 1e-5
+        with torch.no_grad():  # weights changed after compiling are used (they are inputs of the graph)
+            for prm in model.parameters():
+                prm.add_(0.1 * torch.randn_like(prm))
+        assert run_both(model, 3, compile=True) < 1e-5
     assert counters["stats"]["unique_graphs"] == 1  # the compiled graph ran, whole (no graph break)
 
 

@@ -38,8 +38,8 @@ class Config:
     variants: tuple[Literal["eager", "compiled", "bf16"], ...] = ("eager",)
     """Ways to run the transformer policies' inference, timed in alternating rounds (the ratio is the figure to
     read on a shared machine): ``eager`` (what select_action runs by default), ``compiled`` (``Policy(...,
-    compile=True)``, ``cotpc eval --compile``: one ``torch.compile`` graph of the network call, inductor with weight
-    freezing and its C++ wrapper; the compile time is reported), ``bf16`` (bf16 autocast)."""
+    compile=True)``, ``cotpc eval --compile``: one ``torch.compile`` graph of the network call, inductor with its
+    C++ wrapper; the compile time is reported), ``bf16`` (bf16 autocast)."""
     rounds: int = 1
     """Alternating rounds over the variants (each round times ``calls`` calls per variant; the median of all)."""
     json: bool = False

@@ -184,16 +184,17 @@ class Policy:
     def _compile_network(self):
         """``torch.compile`` of the transformer's inference call: one whole graph per batch size (``fullgraph``,
         static shapes; the padding of a partly filled context is always passed as ``n_prev``, so the start of an
-        episode takes the same graph). On a CPU with weight freezing (weights and masks become constants, so
-        inductor folds and pre-packs them) and inductor's C++ wrapper: at batch 1 a step is ~150 small ops whose
-        dispatch costs more than their arithmetic (docs/performance.md). Compiles lazily, on the first call of
-        each batch size (~10-20 s on a CPU). Actions agree with the eager path to ~1e-7, not bit for bit."""
+        episode takes the same graph). On a CPU with inductor's C++ wrapper, which calls the kernels without
+        Python in between: at batch 1 a step is ~150 small ops whose dispatch costs more than their arithmetic
+        (docs/performance.md). The weights stay inputs of the graph, so weights loaded or changed later are used.
+        Compiles lazily, on the first call of each batch size (~10-20 s on a CPU). Actions agree with the eager
+        path to ~1e-7, not bit for bit."""
         if not self._transformer:
             raise ValueError(f"compile=True is for the transformer policies; {self.cfg.name!r} runs eager "
                              f"({'it plans chunks with a sampler' if self._chunked else 'a Markovian MLP'})")
         if self.device.type == "cpu":
             return torch.compile(self.model.predict_window, fullgraph=True, dynamic=False,
-                                 options={"freezing": True, "cpp_wrapper": True})
+                                 options={"cpp_wrapper": True})
         return torch.compile(self.model.predict_window, fullgraph=True, dynamic=False)  # unmeasured on a GPU
 
     @torch.inference_mode()
