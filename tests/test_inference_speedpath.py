@@ -226,3 +226,17 @@ def test_the_accelerator_step_equals_the_cpu_step():
         with torch.inference_mode():
             got = acc._step(torch.as_tensor(obs))
         np.testing.assert_allclose(got, cpu.select_action(obs), atol=1e-6)
+
+
+def test_a_failing_compile_says_what_to_do(monkeypatch, tmp_path):
+    """No C++ compiler: a clear error naming the cause and the way out, not inductor's traceback."""
+    import torch._inductor.config as inductor_config
+
+    monkeypatch.setenv("TORCHINDUCTOR_CACHE_DIR", str(tmp_path))  # nothing compiled earlier is reused
+    torch._dynamo.reset()
+    model = tiny_model("bet", d_model=16, n_heads=2, n_layers=1)  # shapes no other test compiles
+    with inductor_config.patch({"cpp.cxx": (None, "no-such-cxx"), "fx_graph_cache": False}):
+        pol = Policy(model, compile=True)
+        with pytest.raises(RuntimeError, match="needs a C\\+\\+ compiler.*run without --compile"):
+            pol.select_action(np.zeros((1, Q), np.float32))
+    torch._dynamo.reset()
