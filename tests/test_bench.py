@@ -21,7 +21,9 @@ def _restore_threads():
 def test_bench_act_reports_amortised_and_worst_steps(capsys):
     cotpc_main(["bench", "act", "--policies", "bc", "cotpc", "dp", "--batch-sizes", "1", "--calls", "8",
                 "--threads", "1", "--json"])
-    rows = {r["policy"]: r for r in json.loads(capsys.readouterr().out)["rows"]}
+    out = json.loads(capsys.readouterr().out)
+    assert out["cpu"]["model"] and isinstance(out["cpu"]["amx_bf16"], bool)  # the machine, with the numbers
+    rows = {r["policy"]: r for r in out["rows"]}
     assert set(rows) == {"bc", "cotpc", "dp"}
     for r in rows.values():
         assert 0 < r["ms"] <= r["ms_max"] and r["ms_mean"] <= r["ms_max"]

@@ -20,6 +20,7 @@ import torch
 import tyro
 
 from cotpc.policies import Policy, get_preset, make_model
+from cotpc.training.precision import cpu_info
 
 
 @dataclass
@@ -89,9 +90,12 @@ def main(argv: list[str], prog: str = "cotpc bench act") -> None:
     rows = [row for p in cfg.policies for b in cfg.batch_sizes
             for row in bench(p, b, cfg.calls, cfg.variants, cfg.rounds)]
     if cfg.json:
-        print(json.dumps({"config": asdict(cfg), "threads": torch.get_num_threads(), "rows": rows}, indent=1))
+        print(json.dumps({"config": asdict(cfg), "cpu": cpu_info(), "torch": torch.__version__,
+                          "threads": torch.get_num_threads(), "rows": rows}, indent=1))
         return
-    print(f"select_action, ManiSkill setting, {torch.get_num_threads()} threads")
+    cpu = cpu_info()
+    print(f"select_action, ManiSkill setting, {torch.get_num_threads()} threads, {cpu.get('model', '?')} "
+          f"({' '.join(cpu['flags']) or 'no avx2'})")
     print(f"{'policy':<12} {'variant':<9} {'batch':>5} {'mean ms':>9} {'median':>9} {'p90':>9} {'worst':>9}")
     for r in rows:
         print(f"{r['policy']:<12} {r['variant']:<9} {r['batch']:>5} {r['ms_mean']:>9.3f} {r['ms']:>9.3f} "
