@@ -187,8 +187,10 @@ class Policy:
         episode takes the same graph). On a CPU with inductor's C++ wrapper, which calls the kernels without
         Python in between: at batch 1 a step is ~150 small ops whose dispatch costs more than their arithmetic
         (docs/performance.md). The weights stay inputs of the graph, so weights loaded or changed later are used.
-        Compiles lazily, on the first call of each batch size (~10-20 s on a CPU). Actions agree with the eager
-        path to ~1e-7, not bit for bit."""
+        Compiles lazily, on the first call of each batch size (~10-20 s on a CPU); the graphs are shared by every
+        policy of the same structure in a process, and past torch's limit of 8 graphs per process
+        (``torch._dynamo.config.recompile_limit``) further shapes run eager. Actions agree with the eager path
+        to ~1e-7, not bit for bit."""
         if not self._transformer:
             raise ValueError(f"compile=True is for the transformer policies; {self.cfg.name!r} runs eager "
                              f"({'it plans chunks with a sampler' if self._chunked else 'a Markovian MLP'})")
