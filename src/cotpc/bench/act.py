@@ -94,7 +94,7 @@ def main(argv: list[str], prog: str = "cotpc bench act") -> None:
                           "threads": torch.get_num_threads(), "rows": rows}, indent=1))
         return
     cpu = cpu_info()
-    print(f"select_action, ManiSkill setting, {torch.get_num_threads()} threads, {cpu.get('model', '?')} "
+    print(f"select_action, ManiSkill setting, {torch.get_num_threads()} threads, {cpu['model']} "
           f"({' '.join(cpu['flags']) or 'no avx2'})")
     print(f"{'policy':<12} {'variant':<9} {'batch':>5} {'mean ms':>9} {'median':>9} {'p90':>9} {'worst':>9}")
     for r in rows:

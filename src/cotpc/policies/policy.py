@@ -132,7 +132,6 @@ class Policy:
         self.T = self.cfg.window
         self._transformer = isinstance(model, TransformerPolicy)
         self._chunked = hasattr(model, "predict_chunk")  # action chunks with a queue per environment
-        self.compiled = compile
         self._network = self._compile_network() if compile else None  # None: the eager predict_window
         n = model.norm
         self._obs_mean, self._obs_std, self._act_mean, self._act_std = n.obs_mean, n.obs_std, n.act_mean, n.act_std
@@ -194,10 +193,9 @@ class Policy:
         if not self._transformer:
             raise ValueError(f"compile=True is for the transformer policies; {self.cfg.name!r} runs eager "
                              f"({'it plans chunks with a sampler' if self._chunked else 'a Markovian MLP'})")
-        if self.device.type == "cpu":
-            return torch.compile(self.model.predict_window, fullgraph=True, dynamic=False,
-                                 options={"cpp_wrapper": True})
-        return torch.compile(self.model.predict_window, fullgraph=True, dynamic=False)  # unmeasured on a GPU
+        # a CPU: the C++ wrapper; a GPU: inductor's defaults (unmeasured)
+        options = {"cpp_wrapper": True} if self.device.type == "cpu" else None
+        return torch.compile(self.model.predict_window, fullgraph=True, dynamic=False, options=options)
 
     @torch.inference_mode()
     def select_action(self, obs) -> np.ndarray:
@@ -273,20 +271,22 @@ class Policy:
             if self._network is not None:
                 a = self._compiled_call(states, prev, t)
             else:
-                n_prev = None  # None: every context is full, the constant mask applies
-                if self.T > 1 and self._n.min() < self.T - 1:  # some context still starts inside the window
-                    n_prev = torch.from_numpy(np.minimum(self._n, self.T - 1)).to(self.device)
-                a = self.model.predict_window(states, prev, t, n_prev)
+                # None: every context is full, the constant mask applies
+                partly_filled = self.T > 1 and self._n.min() < self.T - 1
+                a = self.model.predict_window(states, prev, t, self._n_prev() if partly_filled else None)
         else:  # the Markovian MLP reads the current state only
             a = self.model.predict({"states": states})
         self._t += 1
         self._n += 1
         return a
 
+    def _n_prev(self) -> torch.Tensor:
+        """(B,) earlier steps each environment's window holds, capped at T - 1 (the padding mask's index)."""
+        return torch.from_numpy(np.minimum(self._n, self.T - 1)).to(self.device)
+
     def _compiled_call(self, states: torch.Tensor, prev: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        n_prev = torch.from_numpy(np.minimum(self._n, self.T - 1)).to(self.device)
-        try:
-            return self._network(states, prev, t, n_prev)
+        try:  # n_prev always given: one graph whether or not a context is partly filled
+            return self._network(states, prev, t, self._n_prev())
         except torch._dynamo.exc.BackendCompilerFailed as e:
             raise RuntimeError(
                 "select_action: compiling the policy failed (on a CPU torch.compile needs a C++ compiler, g++ or "
