@@ -150,6 +150,10 @@ TRANSFORMER_PRESETS: dict[str, TransformerConfig] = {
     "only-last": dataclasses.replace(_COTPC, name="only-last", cot_targets=("last",)),
     "only-next": dataclasses.replace(_COTPC, name="only-next", cot_targets=("next",)),
     "random": dataclasses.replace(_COTPC, name="random", cot_targets=("random",)),
+    # The same control for the MSE-headed cotpc-mse: is what the CoT adds to DT's head the subskill states, or
+    # any future states of the demo?
+    "random-mse": dataclasses.replace(_COTPC, name="random-mse", action_head="mse", offset_from="state",
+                                      cot_targets=("random",)),
     "vanilla": dataclasses.replace(_COTPC, name="vanilla", n_cot=1, offset_from="state"),
     "o-shared": dataclasses.replace(_COTPC, name="o-shared", centre_from="cot", offset_from="cot"),
     "swapped": dataclasses.replace(_COTPC, name="swapped", centre_from="cot", offset_from="action"),
