@@ -143,6 +143,18 @@ def test_eval_cli_on_a_trained_run(demo_dir, tmp_path, capsys):
     assert saved["summary"]["episodes"] == 5 and all(1_000_000 <= e["seed"] < 2_000_000 for e in saved["episodes"])
     with pytest.raises(SystemExit, match="--compile: .*transformer policies"):
         cotpc_main(["eval", str(run), "--split", "val", "--episodes", "1", "--compile"])
+    capsys.readouterr()
+    # a bad run directory or demo folder: exit status 2 and one line naming the file, no traceback
+    for args, says in (([str(demo_dir)], "no config.json; not a cotpc run directory"),
+                       ([str(run), "--demos", str(tmp_path / "nowhere")], "nowhere/val.h5 does not exist")):
+        with pytest.raises(SystemExit) as stop:
+            cotpc_main(["eval", *args, "--split", "val", "--episodes", "1"])
+        assert stop.value.code == 2 and says in capsys.readouterr().err
+    weights = run / "model.safetensors"
+    weights.write_bytes(weights.read_bytes()[:500])  # a copy cut short
+    with pytest.raises(SystemExit) as stop:
+        cotpc_main(["eval", str(run), "--split", "val", "--episodes", "1"])
+    assert stop.value.code == 2 and "not a readable safetensors file" in capsys.readouterr().err
 
 
 def test_eval_cli_compiled_transformer_acts_as_the_eager_one(demo_dir, tmp_path):

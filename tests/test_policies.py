@@ -135,6 +135,27 @@ def test_checkpoint_from_another_config_is_a_clear_error(trajs, tmp_path):
         load_policy(tmp_path)
 
 
+def test_truncated_or_foreign_checkpoint_files_are_clear_errors(trajs, tmp_path):
+    model, _ = build("bet", trajs)
+    run = save_checkpoint(tmp_path / "run", model, {"max_timestep": 25})
+    weights, config = (run / "model.safetensors").read_bytes(), (run / "config.json").read_text()
+    (run / "model.safetensors").write_bytes(weights[:1000])  # a copy cut short
+    with pytest.raises(CheckpointError, match="model.safetensors: not a readable safetensors file"):
+        load_policy(run)
+    (run / "model.safetensors").write_bytes(b"PK\x03\x04 a torch.save zip under the name")
+    with pytest.raises(CheckpointError, match="truncated or foreign"):
+        load_policy(run)
+    (run / "model.safetensors").write_bytes(weights)
+    (run / "config.json").write_text(config[: len(config) // 2])
+    with pytest.raises(CheckpointError, match="config.json: not readable as JSON"):
+        load_policy(run)
+    (run / "config.json").write_text("[1, 2]")
+    with pytest.raises(CheckpointError, match="not a cotpc policy config"):
+        load_policy(run)
+    (run / "config.json").write_text(config)
+    load_policy(run)  # restored: loads again
+
+
 def _predict_from_all_tokens(model, batch):
     """Reference for predict(): every token through every block, then the heads on the last window index."""
     cfg = model.cfg

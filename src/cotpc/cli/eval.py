@@ -3,10 +3,14 @@ suite of the env id the run was trained on (:mod:`cotpc.studies.suites`)."""
 
 from __future__ import annotations
 
+import sys
+
 import tyro
 
+from cotpc.data.trajectories import TrajectoryFormatError
+
 from cotpc.evaluation.request import EvalRequest
-from cotpc.policies.policy import read_config
+from cotpc.policies.policy import CheckpointError, read_config
 from cotpc.studies.suites import suite_for_env, suites
 
 
@@ -21,4 +25,9 @@ def run_eval(req: EvalRequest) -> dict:
 
 
 def main(argv: list[str], prog: str) -> None:
-    run_eval(tyro.cli(EvalRequest, args=argv, prog=prog))
+    req = tyro.cli(EvalRequest, args=argv, prog=prog)
+    try:
+        run_eval(req)
+    except (CheckpointError, TrajectoryFormatError, FileNotFoundError) as e:  # a bad run or demo file: no traceback
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        raise SystemExit(2)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 
 from cotpc.policies.base import BaseConfig, config_from_dict, config_to_dict, make_model
@@ -64,9 +65,13 @@ def read_config(directory: str | os.PathLike) -> dict:
     path = directory / "config.json"
     if not path.exists():
         raise CheckpointError(f"{directory}: no config.json; not a cotpc run directory")
-    info = json.loads(path.read_text())
-    if info.get("format") != FORMAT:
-        raise CheckpointError(f"{path}: not a cotpc policy config (format {info.get('format')!r})")
+    try:
+        info = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CheckpointError(f"{path}: not readable as JSON ({e}); a truncated or foreign file") from None
+    if not isinstance(info, dict) or info.get("format") != FORMAT:
+        found = info.get("format") if isinstance(info, dict) else type(info).__name__
+        raise CheckpointError(f"{path}: not a cotpc policy config (format {found!r})")
     return info
 
 
@@ -81,7 +86,11 @@ def load_model(directory: str | os.PathLike, device: str = "cpu") -> tuple[torch
     weights = directory / "model.safetensors"
     if not weights.exists():
         raise CheckpointError(f"{directory}: no model.safetensors")
-    load_state(model, load_file(str(weights)), f"{weights} (config: policy {cfg.name!r})")
+    try:
+        state = load_file(str(weights))
+    except SafetensorError as e:  # a truncated copy or another format under the name
+        raise CheckpointError(f"{weights}: not a readable safetensors file ({e}); a truncated or foreign file") from None
+    load_state(model, state, f"{weights} (config: policy {cfg.name!r})")
     return model.to(device).eval(), info
 
 
