@@ -1,5 +1,6 @@
 """The gmm action head: its likelihood is the mixture's, and it keeps the modes an MSE head averages."""
 
+import pytest
 import torch
 
 from cotpc.policies import get_preset, make_model
@@ -74,6 +75,12 @@ def test_mean_action_rule_acts_with_the_expected_action():
             model.cfg = cfg.replace(action_rule="mean")
             assert torch.allclose(model.predict(batch), expected, atol=1e-5), name
             assert not torch.allclose(mode, expected, atol=1e-3), name  # the rule changes the action
+
+
+def test_the_mse_head_refuses_an_action_rule():
+    with pytest.raises(ValueError, match="mse head predicts one action"):
+        get_preset("dt").replace(action_rule="mean")
+    get_preset("dt").replace(action_rule="mode")
 
 
 def test_eval_files_of_other_action_rules_never_replace_the_runs_own(tmp_path):

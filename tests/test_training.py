@@ -74,6 +74,16 @@ def test_resume_with_other_config_or_data_is_a_clear_error(data, tmp_path):
     save_trajectories(other, synthetic_trajectories(n_episodes=10, obs_dim=7, action_dim=2, length=20, seed=1))
     with pytest.raises(CheckpointError, match="dims"):
         train(TrainConfig(data=other, out=tmp_path / "run", iters=8, resume=True, **TINY))
+    state = tmp_path / "run" / "training_state.pt"
+    saved = state.read_bytes()
+    state.write_bytes(saved[: len(saved) // 2])  # killed while copying: a truncated file
+    with pytest.raises(CheckpointError, match="training_state.pt: cannot resume: not a readable training state"):
+        train(TrainConfig(data=data, out=tmp_path / "run", iters=8, resume=True, **TINY))
+    torch.save({"model": {}}, state)  # a foreign torch file under the name
+    with pytest.raises(CheckpointError, match="not a cotpc training state"):
+        train(TrainConfig(data=data, out=tmp_path / "run", iters=8, resume=True, **TINY))
+    state.write_bytes(saved)
+    train(TrainConfig(data=data, out=tmp_path / "run", iters=8, resume=True, **TINY))  # restored: resumes
 
 
 def test_state_noise_perturbs_only_the_input_states(data):

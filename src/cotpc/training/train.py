@@ -169,6 +169,19 @@ PROTOCOL_CHECKPOINTS = 20
 RESUME_MUST_MATCH = ("state_noise", "boundary_weight", "boundary_radius", "compile")
 
 
+def _read_training_state(path: Path) -> dict:
+    """``training_state.pt``, or a CheckpointError naming it when it is cut short or not one of ours."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # torch raises RuntimeError, EOFError or UnpicklingError by how the file is broken
+        raise CheckpointError(f"{path}: cannot resume: not a readable training state ({type(e).__name__}: "
+                              f"{str(e).splitlines()[0] if str(e) else ''}); a truncated or foreign file") from None
+    keys = ("policy", "dims", "model", "optimizer", "scheduler", "rng", "step", "best_val")
+    if not isinstance(state, dict) or any(k not in state for k in keys):
+        raise CheckpointError(f"{path}: cannot resume: not a cotpc training state (it needs {', '.join(keys)})")
+    return state
+
+
 def checkpoint_interval(config: TrainConfig) -> int:
     """``--ckpt-every``, or its default: a tenth of the run (at most 5000 iterations), a twentieth when every
     checkpoint is kept."""
@@ -393,7 +406,7 @@ def _train(config: TrainConfig) -> Path:
     }
     state_path = run_dir / "training_state.pt"
     if config.resume and state_path.exists():
-        state = torch.load(state_path, map_location="cpu", weights_only=False)
+        state = _read_training_state(state_path)
         saved = config_to_dict(config_from_dict(state["policy"]))  # (states saved before policy families too)
         if saved != config_to_dict(cfg) or state["dims"] != [q, p]:
             diff = {k: (saved.get(k), v) for k, v in config_to_dict(cfg).items() if saved.get(k) != v}

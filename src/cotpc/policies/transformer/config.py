@@ -107,6 +107,9 @@ class TransformerConfig(BaseConfig):
             raise ValueError(f"the gmm head needs n_modes >= 1, got {self.n_modes}")
         if self.context < 1:
             raise ValueError("context must be >= 1")
+        if self.action_head == "mse" and self.action_rule != "mode":  # it would change only the file's name
+            raise ValueError(f"the mse head predicts one action; action_rule {self.action_rule!r} is for the "
+                             f"bet and gmm heads")
         n_cot = self.n_cot_tokens
         for src in (self.centre_from, self.offset_from):
             if src == "cot" and n_cot != self.context:
