@@ -71,6 +71,23 @@ def test_errors_are_messages(tmp_path):
         assert not any("subskill_ends" in f[k] for k in f)  # nothing written on failure
 
 
+@pytest.mark.parametrize("damage, says", [
+    (lambda a: a.__setitem__((4, 1), np.nan), r"traj_1: actions holds NaN/inf \(first at index \(4, 1\)\)"),
+    (lambda a: a.__setitem__(slice(None), 0.0), r"traj_1: every action of this episode is zero \(25 steps\)"),
+])
+def test_nan_or_all_zero_actions_are_named_by_every_reader(tmp_path, damage, says):
+    h5, _ = make_file(tmp_path / "demos")
+    with h5py.File(h5, "r+") as f:
+        a = f["traj_1"]["actions"][()]
+        damage(a)
+        f["traj_1"]["actions"][...] = a
+    with pytest.raises(SystemExit, match=says):
+        segment_main([str(h5)], prog="cotpc segment")
+    with pytest.raises(SystemExit):  # cotpc train: one line on stderr, exit status 2
+        cotpc_main(["train", "--data", str(h5), "--policy", "bet", "--out", str(tmp_path / "run"), "--iters", "1"])
+    assert not (tmp_path / "run" / "model.safetensors").exists()
+
+
 def test_maze_defaults_key_steps_and_figures(tmp_path, capsys):
     from cotpc.envs import task_defaults
 

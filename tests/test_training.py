@@ -13,6 +13,7 @@ from cotpc.data import load_trajectories, save_trajectories
 from cotpc.data.dataset import MissingSubskillsError, Stats, WindowDataset, synthetic_trajectories
 from cotpc.policies import CheckpointError, load_policy
 from cotpc.training import TrainConfig, train
+from cotpc.training.train import main as train_main
 
 TINY = dict(context=4, d_model=32, n_heads=4, n_layers=2, n_centres=8, batch_size=32, progress=False,
             val_every=10, log_every=5, warmup_iters=4)
@@ -64,6 +65,13 @@ def test_resume_reaches_the_same_weights(data, tmp_path, policy):
     assert a.keys() == b.keys()
     for k in a:
         assert torch.equal(a[k], b[k]), k
+
+
+def test_more_kmeans_centres_than_training_actions_is_a_clear_error(data, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        train_main(["--data", str(data), "--policy", "bet", "--out", str(tmp_path / "run"), "--iters", "1",
+                    "--n-centres", "100000", "--no-progress"])
+    assert "100000 k-means centres need at least as many training actions" in capsys.readouterr().err
 
 
 def test_resume_with_other_config_or_data_is_a_clear_error(data, tmp_path):

@@ -190,7 +190,10 @@ def _check_episode(ep: Episode, where: str) -> None:
     for name, arr in (("obs", ep.obs), ("actions", ep.actions)):
         if not np.all(np.isfinite(arr)):
             bad = np.argwhere(~np.isfinite(arr))[0]
-            raise TrajectoryFormatError(f"{where}: {name} holds NaN/inf (first at index {tuple(bad)})")
+            raise TrajectoryFormatError(f"{where}: {name} holds NaN/inf (first at index {tuple(int(i) for i in bad)})")
+    if not ep.actions.any():  # a single zero action is a legitimate pause; a whole episode of them is no demo
+        raise TrajectoryFormatError(f"{where}: every action of this episode is zero ({ep.actions.shape[0]} steps): "
+                                    f"a failed recording or the wrong dataset; remove the episode")
 
 
 def write_episode_datasets(

@@ -169,6 +169,10 @@ PROTOCOL_CHECKPOINTS = 20
 RESUME_MUST_MATCH = ("state_noise", "boundary_weight", "boundary_radius", "compile")
 
 
+class SettingsError(ValueError):
+    """The flags do not fit the data (e.g. more k-means centres than training actions)."""
+
+
 def _read_training_state(path: Path) -> dict:
     """``training_state.pt``, or a CheckpointError naming it when it is cut short or not one of ours."""
     try:
@@ -369,6 +373,10 @@ def _train(config: TrainConfig) -> Path:
     train_eps, val_eps = split_episodes(len(trajs), config.val_fraction, config.seed)
     obs_all = np.concatenate([trajs.episodes[i].obs[:-1] for i in train_eps])
     act_all = np.concatenate([trajs.episodes[i].actions for i in train_eps])
+    if cfg.n_kmeans_centres > len(act_all):  # k-means needs a point per centre
+        raise SettingsError(f"{config.data}: {cfg.n_kmeans_centres} k-means centres need at least as many training "
+                            f"actions; its {len(train_eps)} training episodes hold {len(act_all)}: pass "
+                            f"--n-centres {min(128, len(act_all))} or fewer, or more demos")
     stats = Stats.of(obs_all, act_all)
     where = str(config.data)
     fut = cfg.future_actions  # action chunks (Diffusion Policy); 0 for the other families
@@ -550,7 +558,7 @@ def main(argv: list[str] | None = None, prog: str = "cotpc train") -> None:
     config = tyro.cli(TrainConfig, args=sys.argv[1:] if argv is None else argv, prog=prog)
     try:
         train(config)
-    except (MissingSubskillsError, TrajectoryFormatError, CheckpointError, FileExistsError) as e:
+    except (MissingSubskillsError, TrajectoryFormatError, CheckpointError, SettingsError, FileExistsError) as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         raise SystemExit(2)
     finally:
