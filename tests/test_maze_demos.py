@@ -138,3 +138,17 @@ def test_demos_for_the_moved_landing_rule(tmp_path):
     configs, seeds = load_split_configs(tmp_path, "seen")
     result, _ = rollout(replay, configs, seeds, "seen", landing="observed")
     assert result.success_rate < 0.5
+
+
+@pytest.mark.parametrize("args, says", [
+    (["maze", "--out", "X", "--train", "-3"], "cotpc demos maze: --train must be >= 0, got -3"),
+    (["maze", "--out", "X", "--train", "0", "--val", "0", "--test", "0"], "are all 0: nothing to generate"),
+    (["maze", "--out", "X", "--workers", "0"], "--workers must be >= 1, got 0"),
+    (["maniskill", "--out", "X", "--num", "-1"], "cotpc demos maniskill: --num must be >= 0"),
+    (["kitchen", "--out", "X", "--combinations", "0"], "cotpc demos kitchen: --combinations must be >= 1"),
+])
+def test_demos_flags_out_of_range_are_messages(tmp_path, args, says):
+    args = [str(tmp_path / "out") if a == "X" else a for a in args]
+    with pytest.raises(SystemExit, match=says):
+        cotpc_main(["demos", *args])
+    assert not (tmp_path / "out").exists()  # nothing written

@@ -74,6 +74,22 @@ def test_more_kmeans_centres_than_training_actions_is_a_clear_error(data, tmp_pa
     assert "100000 k-means centres need at least as many training actions" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("flags, says", [
+    (["--iters", "0"], "--iters must be a finite number >= 1, got 0"),
+    (["--batch-size", "0"], "--batch-size must be"),
+    (["--context", "0"], "--context must be"),  # not silently the task's default
+    (["--lr", "0"], "--lr must be a finite number > 0"),
+    (["--lr", "nan"], "--lr must be"),
+    (["--dropout", "1.5"], "--dropout must be in [0, 1)"),
+    (["--d-model", "30", "--n-heads", "8"], "--policy bet: d_model=30 must be divisible by n_heads=8"),
+])
+def test_flags_out_of_range_are_one_line_errors(data, tmp_path, capsys, flags, says):
+    with pytest.raises(SystemExit) as stop:
+        train_main(["--data", str(data), "--policy", "bet", "--out", str(tmp_path / "run"), "--no-progress", *flags])
+    assert stop.value.code == 2 and says in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
+
+
 def test_resume_with_other_config_or_data_is_a_clear_error(data, tmp_path):
     train(TrainConfig(data=data, out=tmp_path / "run", iters=4, **TINY))
     with pytest.raises(CheckpointError, match="another configuration"):

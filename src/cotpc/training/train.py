@@ -191,7 +191,7 @@ def checkpoint_interval(config: TrainConfig) -> int:
     checkpoint is kept."""
     if config.ckpt_every is not None:
         if config.ckpt_every < 1:
-            raise ValueError(f"--ckpt-every must be >= 1, got {config.ckpt_every}")
+            raise SettingsError(f"--ckpt-every must be >= 1, got {config.ckpt_every}")
         return config.ckpt_every
     if config.keep_checkpoints:
         return max(config.iters // PROTOCOL_CHECKPOINTS, 1)
@@ -328,15 +328,32 @@ def train(config: TrainConfig) -> Path:
         torch.set_num_threads(threads)
 
 
+def check_settings(config: TrainConfig) -> None:
+    """SettingsError naming the first flag out of range (before any data is read)."""
+    def at_least(name: str, low: float, strict: bool = False, optional: bool = True) -> None:
+        value = getattr(config, name)
+        if value is None and optional:
+            return
+        ok = value is not None and math.isfinite(value) and (value > low if strict else value >= low)
+        if not ok:
+            raise SettingsError(f"--{name.replace('_', '-')} must be a finite number {'>' if strict else '>='} "
+                                f"{low:g}, got {value}")
+
+    for name in ("iters", "context", "batch_size", "n_centres", "d_model", "n_layers", "n_heads", "val_windows",
+                 "threads", "val_every", "log_every"):
+        at_least(name, 1)
+    for name in ("lr", "boundary_weight"):
+        at_least(name, 0, strict=True)
+    for name in ("min_lr", "warmup_iters", "weight_decay", "cot_weight", "state_noise", "boundary_radius",
+                 "grad_clip"):
+        at_least(name, 0)
+    if config.dropout is not None and not 0 <= config.dropout < 1:
+        raise SettingsError(f"--dropout must be in [0, 1), got {config.dropout}")
+
+
 def _train(config: TrainConfig) -> Path:
+    check_settings(config)
     ckpt_every = checkpoint_interval(config)
-    if not (config.state_noise >= 0 and math.isfinite(config.state_noise)):
-        raise ValueError(f"--state-noise must be a finite number >= 0, got {config.state_noise}")
-    if config.val_windows is not None and config.val_windows < 1:
-        raise ValueError(f"--val-windows must be >= 1, got {config.val_windows}")
-    if not (config.boundary_weight > 0 and math.isfinite(config.boundary_weight)) or config.boundary_radius < 0:
-        raise ValueError(f"--boundary-weight must be a finite number > 0 and --boundary-radius >= 0, got "
-                         f"{config.boundary_weight} and {config.boundary_radius}")
     # --- processes and devices ---
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
@@ -359,17 +376,20 @@ def _train(config: TrainConfig) -> Path:
     trajs = load_trajectories(config.data)
     env_id = trajs.env_info.get("env_id")
     defaults = task_defaults(env_id)
-    cfg = get_preset(
-        config.policy,
-        context=config.context or defaults.context,
-        n_centres=config.n_centres or defaults.n_centres,
-        batch_size=config.batch_size, lr=config.lr, min_lr=config.min_lr, warmup_iters=config.warmup_iters,
-        weight_decay=config.weight_decay, cot_layer=config.cot_layer, d_model=config.d_model,
-        n_layers=config.n_layers, n_heads=config.n_heads, dropout=config.dropout,
-        cot_weight=config.cot_weight if PRESETS[config.policy].cot_targets else None,
-    )
+    try:
+        cfg = get_preset(
+            config.policy,
+            context=config.context or defaults.context,
+            n_centres=config.n_centres or defaults.n_centres,
+            batch_size=config.batch_size, lr=config.lr, min_lr=config.min_lr, warmup_iters=config.warmup_iters,
+            weight_decay=config.weight_decay, cot_layer=config.cot_layer, d_model=config.d_model,
+            n_layers=config.n_layers, n_heads=config.n_heads, dropout=config.dropout,
+            cot_weight=config.cot_weight if PRESETS[config.policy].cot_targets else None,
+        )
+    except ValueError as e:  # the preset's own consistency checks (e.g. --d-model not divisible by --n-heads)
+        raise SettingsError(f"--policy {config.policy}: {e}") from None
     if cfg.batch_size % world:
-        raise ValueError(f"batch size {cfg.batch_size} is not divisible by the {world} processes")
+        raise SettingsError(f"batch size {cfg.batch_size} is not divisible by the {world} processes")
     train_eps, val_eps = split_episodes(len(trajs), config.val_fraction, config.seed)
     obs_all = np.concatenate([trajs.episodes[i].obs[:-1] for i in train_eps])
     act_all = np.concatenate([trajs.episodes[i].actions for i in train_eps])

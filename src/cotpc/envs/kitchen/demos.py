@@ -37,6 +37,7 @@ from typing import Optional
 import numpy as np
 
 from cotpc.data.trajectories import Episode, TrajectorySet, save_trajectories
+from cotpc.envs.spec import check_demo_flags
 from cotpc.envs.kitchen.env import (ENV_ID, HORIZON, NUM_REQUESTED, SEEDS, SUBTASKS, FrankaKitchenOrderedEnv, check_seed,
                                validate_tasks)
 
@@ -633,5 +634,7 @@ class KitchenDemos:
 
 def make_demos(cfg: KitchenDemos) -> dict[str, Path]:
     """``cotpc demos kitchen``."""
+    check_demo_flags("cotpc demos kitchen", {"--train": cfg.train, "--val": cfg.val, "--test": cfg.test},
+                     {"--combinations": cfg.combinations}, {"--seed": cfg.seed})
     return write_splits(cfg.out, train=cfg.train, test=cfg.test, val=cfg.val, seed=cfg.seed,
                         num_combinations=cfg.combinations)

@@ -33,6 +33,7 @@ import torch
 from tqdm import tqdm
 
 from cotpc.data.trajectories import Episode, TrajectoryFormatError, TrajectorySet, load_trajectories, save_trajectories
+from cotpc.envs.spec import check_demo_flags
 from cotpc.envs.maniskill.env import (
     CONTROL_MODES, HORIZONS, KEY_STATE_FLAGS, SEEDS, flat_obs, import_maniskill, key_state_flags, key_steps_from_flags,
     make_env,
@@ -374,5 +375,7 @@ class ManiSkillDemos:
 
 def make_demos(cfg: ManiSkillDemos) -> dict[str, Path]:
     """``cotpc demos maniskill`` (mani_skill is imported only when demos are made: an optional extra)."""
+    check_demo_flags("cotpc demos maniskill", {"--num": cfg.num, "--val": cfg.val, "--test": cfg.test},
+                     {"--procs": cfg.procs, "--max-attempts": cfg.max_attempts}, {"--offset": cfg.offset})
     return write_splits(cfg.env, cfg.out, cfg.num, cfg.test, control_mode=cfg.control_mode, procs=cfg.procs,
                         offset=cfg.offset, max_attempts=cfg.max_attempts, progress=cfg.progress, val=cfg.val)

@@ -30,6 +30,7 @@ from typing import Literal
 import numpy as np
 
 from cotpc.data.trajectories import Episode, TrajectorySet, save_trajectories
+from cotpc.envs.spec import check_demo_flags
 from cotpc.envs.maze.env import (
     BLOCK,
     BRIDGE1_X_RANGE,
@@ -334,5 +335,7 @@ class MazeDemos:
 
 def make_demos(cfg: MazeDemos) -> dict[str, Path]:
     """``cotpc demos maze``."""
+    check_demo_flags("cotpc demos maze", {"--train": cfg.train, "--val": cfg.val, "--test": cfg.test},
+                     {"--workers": cfg.workers}, {"--seed": cfg.seed})
     return write_splits(cfg.out, cfg.train, cfg.test, val=cfg.val, seed=cfg.seed, workers=cfg.workers,
                         landing=cfg.landing)
