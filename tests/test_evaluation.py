@@ -150,6 +150,10 @@ def test_eval_cli_on_a_trained_run(demo_dir, tmp_path, capsys):
         with pytest.raises(SystemExit) as stop:
             cotpc_main(["eval", *args, "--split", "val", "--episodes", "1"])
         assert stop.value.code == 2 and says in capsys.readouterr().err
+    for flags, says in ((["--episodes", "0"], "--episodes must be >= 1, got 0"),  # not silently "all"
+                        (["--episodes", "-1"], "--episodes must be >= 1"), (["--horizon", "0"], "--horizon must be")):
+        with pytest.raises(SystemExit, match=says):
+            cotpc_main(["eval", str(run), "--split", "val", *flags])
     weights = run / "model.safetensors"
     weights.write_bytes(weights.read_bytes()[:500])  # a copy cut short
     with pytest.raises(SystemExit) as stop:

@@ -118,6 +118,10 @@ def test_wrong_obs_dim_and_batch_are_clear_errors(trajs):
         pol.select_action(np.zeros((3, Q), np.float32))
     pol.reset()
     pol.select_action(np.zeros((3, Q), np.float32))
+    bad = np.zeros((3, Q), np.float32)
+    bad[1, 2] = np.nan
+    with pytest.raises(ValueError, match="observation 1 of the batch holds NaN/inf"):
+        pol.select_action(bad)
 
 
 def test_checkpoint_from_another_config_is_a_clear_error(trajs, tmp_path):

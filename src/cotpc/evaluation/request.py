@@ -69,6 +69,13 @@ class EvalRequest:
     actions agree with the eager path to ~1e-7, not bit for bit, so a closed-loop rollout can rarely differ).
     Recorded in the evaluation file."""
 
+    def __post_init__(self):
+        for flag, value in (("--episodes", self.episodes), ("--horizon", self.horizon), ("--procs", self.procs),
+                            ("--num-envs", self.num_envs), ("--num-videos", self.num_videos),
+                            ("--sampler-steps", self.sampler_steps), ("--action-horizon", self.action_horizon)):
+            if value is not None and value < (0 if flag == "--num-videos" else 1):  # --episodes 0 is not "all"
+                raise SystemExit(f"cotpc eval: {flag} must be >= {0 if flag == '--num-videos' else 1}, got {value}")
+
     def inference_settings(self) -> dict:
         """Every inference setting of the request by its flag's name, None where the run's own is kept (recorded
         in the evaluation file)."""

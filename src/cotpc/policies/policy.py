@@ -216,6 +216,9 @@ class Policy:
                 f"observation has shape {tuple(obs.shape)}, but this policy was trained on {self.obs_dim}-dim "
                 f"observations (data: {self.info.get('dataset', {}).get('path', '?')})"
             )
+        if not np.isfinite(obs).all():  # a NaN would spread through the whole context window, silently
+            row = int(np.argwhere(~np.isfinite(obs))[0, 0])
+            raise ValueError(f"observation {row} of the batch holds NaN/inf: {obs[row].tolist()}")
         B = obs.shape[0]
         if self._states is None:
             self._allocate(B)
