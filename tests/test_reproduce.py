@@ -2,6 +2,8 @@
 
 import json
 
+import pytest
+
 from cotpc.cli.main import main as cotpc_main
 
 
@@ -137,3 +139,17 @@ def test_a_run_of_another_design_under_the_same_preset_name_is_not_reused(tmp_pa
     (run / "config.json").write_text(json.dumps(info))
     with pytest.raises(ValueError, match="policy.cot_attention"):
         finished(run, wanted)
+
+
+@pytest.mark.parametrize("args, says", [
+    (["maze", "--seeds", "0"], "cotpc reproduce maze: --seeds must be >= 1, got 0"),
+    (["maze", "--iters", "0"], "--iters must be a finite number >= 1, got 0"),  # not silently the 20K default
+    (["maze", "--jobs", "0"], "--jobs must be >= 1"),
+    (["maze", "--policies", "cotpc", "nope"], "unknown policy 'nope'"),
+    (["maniskill", "--batch-size", "0"], "cotpc reproduce maniskill: --batch-size must be"),
+    (["kitchen", "--seeds", "0"], "cotpc reproduce kitchen: --seeds must be >= 1"),
+])
+def test_bad_study_flags_fail_before_anything_is_generated(tmp_path, args, says):
+    with pytest.raises(SystemExit, match=says):
+        cotpc_main(["reproduce", *args, "--out", str(tmp_path / "study")])
+    assert not (tmp_path / "study").exists()

@@ -27,10 +27,9 @@ from cotpc.envs.kitchen.demos import KitchenDemos, generate, make_demos, print_r
 from cotpc.envs.kitchen.env import ENV_ID, HORIZON, PAPER_AVG_COMPLETED, PAPER_SUCCESS
 from cotpc.envs.spec import task_defaults
 from cotpc.envs.kitchen.rollout import evaluate, evaluate_run, load_split_configs
-from cotpc.policies import get_preset
 from cotpc.subskills.labeling import label_file
 from cotpc.training.train import TrainConfig, resolve_device
-from cotpc.studies.runs import (Evaluation, cpu_count, describe_hardware, fresh_eval, plot_learning_curves,
+from cotpc.studies.runs import (Evaluation, check_study_flags, cpu_count, describe_hardware, fresh_eval, plot_learning_curves,
                                 provenance, stats, train_and_evaluate)
 from cotpc.studies.suites import Suite, register_suite
 
@@ -76,11 +75,13 @@ class KitchenReproduce:
 
 def reproduce(cfg: KitchenReproduce) -> dict:
     """``cotpc reproduce kitchen``: run the study of the flags, print a summary."""
-    for name in cfg.policies:
-        get_preset(name)  # an unknown policy fails here, not after the demos
     t_start = time.perf_counter()
     out = Path(cfg.out)
     demos = out / "demos"
+    template = TrainConfig(data=demos / "train.h5", iters=cfg.iters, device=cfg.device, batch_size=cfg.batch_size,
+                           n_centres=cfg.n_centres, bf16=cfg.bf16)
+    check_study_flags("cotpc reproduce kitchen",  # an unknown policy or bad flag fails here, not after the demos
+                      template, cfg.policies, {"--seeds": cfg.seeds, "--jobs": cfg.jobs, "--train-demos": cfg.train_demos})
     defaults = task_defaults(ENV_ID)
     write_missing_demos(demos, {"train": cfg.train_demos, "val": cfg.val_demos, "test": cfg.test_demos},
                         cfg.demo_seed)
@@ -101,8 +102,6 @@ def reproduce(cfg: KitchenReproduce) -> dict:
             flush=True)
 
     device = resolve_device(cfg.device)
-    template = TrainConfig(data=demos / "train.h5", iters=cfg.iters, device=cfg.device, batch_size=cfg.batch_size,
-                           n_centres=cfg.n_centres, bf16=cfg.bf16)
     runs = [(name, seed) for name in cfg.policies for seed in range(cfg.seeds)]
     grid = train_and_evaluate(out, template, runs, evaluations,
                               jobs=cfg.jobs, device=device, step="[3/5]", after_run=print_run)

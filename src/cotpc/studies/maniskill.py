@@ -24,7 +24,7 @@ from cotpc.envs.maniskill.demos import ManiSkillDemos, make_demos, write_splits
 from cotpc.envs.maniskill.env import HORIZONS, import_maniskill, is_maniskill_env
 from cotpc.envs.spec import GENERIC, env_spec, task_defaults
 from cotpc.envs.maniskill.rollout import evaluate, evaluate_run, policy_loader
-from cotpc.studies.runs import (PROTOCOL_CHECKPOINTS, Evaluation, cpu_count, describe_hardware, fresh_eval, jsonable,
+from cotpc.studies.runs import (PROTOCOL_CHECKPOINTS, check_study_flags, Evaluation, cpu_count, describe_hardware, fresh_eval, jsonable,
                                 plot_learning_curves, provenance, stats, train_and_evaluate)
 from cotpc.subskills.labeling import label_file
 from cotpc.training.train import TrainConfig
@@ -454,7 +454,11 @@ def study_settings(cfg: ManiSkillReproduce) -> ManiSkillStudySettings:
 
 def reproduce(cfg: ManiSkillReproduce) -> dict:
     """``cotpc reproduce maniskill``: run the study of the flags, print a summary."""
-    results = run(study_settings(cfg))
+    settings = study_settings(cfg)
+    check_study_flags("cotpc reproduce maniskill", settings.train, settings.policies,
+                      {"--seeds": settings.seeds, "--jobs": settings.jobs, "--procs": settings.procs,
+                       "--num": settings.num, "--curve-every": settings.curve_every})
+    results = run(settings)
     print()
     print(f"{'task':<22}{'policy':<10}{'seen %':>10}{'unseen %':>10}   (success_once, mean over seeds)")
     for env_id, by_policy in results.items():

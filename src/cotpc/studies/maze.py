@@ -25,7 +25,7 @@ from cotpc.envs.maze.rollout import eval_name, evaluate, evaluate_run, load_spli
 from cotpc.studies.suites import Suite, register_suite
 from cotpc.studies.runs import (
     PROTOCOL_CHECKPOINTS, Evaluation, cpu_count, describe_hardware, fresh_eval, jsonable, plot_learning_curves,
-    policy_loader, provenance, stats, train_and_evaluate,
+    check_study_flags, policy_loader, provenance, stats, train_and_evaluate,
 )
 from cotpc.subskills.labeling import label_file
 from cotpc.training.train import TrainConfig, resolve_device
@@ -488,11 +488,16 @@ def reproduce(cfg: MazeReproduce) -> dict:
         workers=cfg.workers,
         jobs=cfg.jobs,
         train=TrainConfig(
-            data=cfg.out / "demos" / "train.h5", iters=cfg.iters or quick.get("iters", FULL_ITERS), device=cfg.device,
-            batch_size=cfg.batch_size or quick.get("batch_size"), n_centres=cfg.n_centres or quick.get("n_centres"),
+            data=cfg.out / "demos" / "train.h5", device=cfg.device,
+            iters=cfg.iters if cfg.iters is not None else quick.get("iters", FULL_ITERS),
+            batch_size=cfg.batch_size if cfg.batch_size is not None else quick.get("batch_size"),
+            n_centres=cfg.n_centres if cfg.n_centres is not None else quick.get("n_centres"),
             keep_checkpoints=cfg.keep_checkpoints, cot_weight=cfg.cot_weight, compile=cfg.compile, bf16=cfg.bf16,
             **({"grad_clip": cfg.grad_clip} if cfg.grad_clip is not None else {})),
     )
+    check_study_flags("cotpc reproduce maze", settings.train, settings.policies + settings.ablations,
+                      {"--seeds": settings.seeds, "--jobs": settings.jobs, "--workers": settings.workers,
+                       "--train-demos": settings.train_demos})
     results = run(settings)
     print()
     print(f"{'policy':<14}{'seen %':>10}{'unseen %':>10}")

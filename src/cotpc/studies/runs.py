@@ -25,7 +25,7 @@ import torch
 
 from cotpc.policies import config_from_dict, config_to_dict, get_preset, load_policy
 from cotpc.training.precision import cpu_info
-from cotpc.training.train import PROTOCOL_CHECKPOINTS, TrainConfig, train
+from cotpc.training.train import PROTOCOL_CHECKPOINTS, SettingsError, TrainConfig, check_settings, train
 
 
 def stats(rates: list[float]) -> dict:
@@ -88,6 +88,20 @@ def run_config(template: TrainConfig, run_dir: Path, policy: str, seed: int) -> 
         template, policy=policy, seed=seed, out=run_dir, resume=(run_dir / "training_state.pt").exists(),
         progress=sys.stderr.isatty(), val_every=max(template.iters // 10, 1),
     )
+
+
+def check_study_flags(prog: str, template: TrainConfig, policies, counts: dict[str, int | None]) -> None:
+    """Before a study generates anything: the shared training flags (:func:`check_settings`), the policies, and
+    ``counts`` ({"--seeds": n, "--jobs": n, ...}, each >= 1 where set); SystemExit naming the first bad one."""
+    for flag, value in counts.items():
+        if value is not None and value < 1:
+            raise SystemExit(f"{prog}: {flag} must be >= 1, got {value}")
+    try:
+        check_settings(template)
+        for name in policies:
+            get_preset(name)
+    except (SettingsError, KeyError, ValueError) as e:
+        raise SystemExit(f"{prog}: {e.args[0] if e.args else e}") from None
 
 
 def train_parallel(out: Path, template: TrainConfig, runs: list[tuple[str, int]], jobs: int) -> None:
