@@ -60,3 +60,14 @@ def test_bench_train_runs_every_family(capsys):
         assert rows[f"{name} x2"]["batch_size"] == 2 * rows[name]["batch_size"]
         assert rows[f"{name} x2"]["gflop_per_iter"] == pytest.approx(2 * rows[name]["gflop_per_iter"], rel=0.05)
 
+
+
+@pytest.mark.parametrize("args, says", [
+    (["act", "--policies", "bet", "--calls", "0"], "cotpc bench act: --calls must be >= 1, got 0"),
+    (["act", "--policies", "bet", "--batch-sizes", "1", "0"], "--batch-sizes must be >= 1, got 1 0"),
+    (["train", "--policies", "bet", "--rounds", "0"], "cotpc bench train: --rounds must be >= 1, got 0"),
+    (["train", "--policies", "bet", "--warmup", "-1"], "--warmup must be >= 0"),
+])
+def test_bench_flags_out_of_range_are_messages(args, says):
+    with pytest.raises(SystemExit, match=says):
+        cotpc_main(["bench", *args])

@@ -67,6 +67,8 @@ def test_errors_are_messages(tmp_path):
         segment_main([str(h5), "--min-size", "30"], prog="cotpc segment")
     with pytest.raises(SystemExit, match="no such trajectory file"):
         segment_main([str(tmp_path / "missing.h5")], prog="cotpc segment")
+    with pytest.raises(SystemExit, match=r"is a directory; pass one trajectory file in it \(demos.h5\)"):
+        segment_main([str(tmp_path)], prog="cotpc segment")
     with h5py.File(h5, "r") as f:
         assert not any("subskill_ends" in f[k] for k in f)  # nothing written on failure
 

@@ -85,6 +85,10 @@ def bench(name: str, batch: int, calls: int, variants: tuple[str, ...] = ("eager
 
 def main(argv: list[str], prog: str = "cotpc bench act") -> None:
     cfg = tyro.cli(Config, args=argv, prog=prog)
+    for flag, values in (("--calls", [cfg.calls]), ("--rounds", [cfg.rounds]), ("--batch-sizes", cfg.batch_sizes),
+                         ("--threads", [cfg.threads or 1])):
+        if min(values, default=0) < 1:
+            raise SystemExit(f"{prog}: {flag} must be >= 1, got {' '.join(map(str, values))}")
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     rows = [row for p in cfg.policies for b in cfg.batch_sizes

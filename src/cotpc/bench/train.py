@@ -262,5 +262,11 @@ def format_table(r: dict) -> str:
 
 def main(argv: list[str], prog: str = "cotpc bench train") -> None:
     cfg = tyro.cli(Config, args=argv, prog=prog)
+    for flag, values in (("--rounds", [cfg.rounds]), ("--iters", [cfg.iters]),
+                         ("--threads", [cfg.threads or 1])):
+        if min(values, default=0) < 1:
+            raise SystemExit(f"{prog}: {flag} must be >= 1, got {' '.join(map(str, values))}")
+    if cfg.warmup < 0:
+        raise SystemExit(f"{prog}: --warmup must be >= 0, got {cfg.warmup}")
     r = run(cfg)
     print(json.dumps({"config": asdict(cfg), **r}, indent=1, default=str) if cfg.json else format_table(r))

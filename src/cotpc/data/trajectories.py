@@ -110,6 +110,10 @@ def load_trajectories(path: str | os.PathLike, extras: tuple[str, ...] | None = 
     ``extras`` names the optional per-episode datasets to load (default: all that are present besides
     ``obs``/``actions``/``success``).
     """
+    if Path(path).is_dir():
+        found = sorted(p.name for p in Path(path).glob("*.h5"))
+        raise TrajectoryFormatError(f"{path} is a directory; pass one trajectory file in it"
+                                    + (f" ({', '.join(found)})" if found else " (it holds no .h5 file)"))
     h5_path, json_path = split_paths(path)
     if not h5_path.exists():
         raise TrajectoryFormatError(f"{h5_path}: no such trajectory file")
