@@ -15,8 +15,8 @@ import gymnasium as gym
 import numpy as np
 
 
-def check_demo_flags(prog: str, counts: dict[str, int], positive: dict[str, int | None] = {},
-                     non_negative: dict[str, int] = {}) -> None:
+def check_demo_flags(prog: str, counts: dict[str, int], positive: dict[str, int | None],
+                     non_negative: dict[str, int]) -> None:
     """``cotpc demos``' flags: ``counts`` (``{"--train": n, ...}``) each >= 0 and not all 0, ``positive`` each >= 1
     (None: unset), ``non_negative`` each >= 0; SystemExit naming the first one out of range."""
     for flag, value in {**counts, **non_negative}.items():

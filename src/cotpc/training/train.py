@@ -170,7 +170,7 @@ RESUME_MUST_MATCH = ("state_noise", "boundary_weight", "boundary_radius", "compi
 
 
 class SettingsError(ValueError):
-    """The flags do not fit the data (e.g. more k-means centres than training actions)."""
+    """A flag out of range, or flags that do not fit the data (more k-means centres than training actions)."""
 
 
 def _read_training_state(path: Path) -> dict:
@@ -330,12 +330,9 @@ def train(config: TrainConfig) -> Path:
 
 def check_settings(config: TrainConfig) -> None:
     """SettingsError naming the first flag out of range (before any data is read)."""
-    def at_least(name: str, low: float, strict: bool = False, optional: bool = True) -> None:
-        value = getattr(config, name)
-        if value is None and optional:
-            return
-        ok = value is not None and math.isfinite(value) and (value > low if strict else value >= low)
-        if not ok:
+    def at_least(name: str, low: float, strict: bool = False) -> None:
+        value = getattr(config, name)  # None: the preset's or the task's default
+        if value is not None and not (math.isfinite(value) and (value > low if strict else value >= low)):
             raise SettingsError(f"--{name.replace('_', '-')} must be a finite number {'>' if strict else '>='} "
                                 f"{low:g}, got {value}")
 
