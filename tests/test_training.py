@@ -81,6 +81,8 @@ def test_more_kmeans_centres_than_training_actions_is_a_clear_error(data, tmp_pa
     (["--lr", "0"], "--lr must be a finite number > 0"),
     (["--lr", "nan"], "--lr must be"),
     (["--dropout", "1.5"], "--dropout must be in [0, 1)"),
+    (["--val-fraction", "1.5"], "--val-fraction must be in [0, 1), got 1.5"),  # not silently clamped
+    (["--stop-after", "0"], "--stop-after must be"),
     (["--d-model", "30", "--n-heads", "8"], "--policy bet: d_model=30 must be divisible by n_heads=8"),
 ])
 def test_flags_out_of_range_are_one_line_errors(data, tmp_path, capsys, flags, says):

@@ -344,8 +344,10 @@ def check_settings(config: TrainConfig) -> None:
     for name in ("min_lr", "warmup_iters", "weight_decay", "cot_weight", "state_noise", "boundary_radius",
                  "grad_clip"):
         at_least(name, 0)
-    if config.dropout is not None and not 0 <= config.dropout < 1:
-        raise SettingsError(f"--dropout must be in [0, 1), got {config.dropout}")
+    at_least("stop_after", 1)
+    for flag, value in (("--dropout", config.dropout), ("--val-fraction", config.val_fraction)):
+        if value is not None and not 0 <= value < 1:
+            raise SettingsError(f"{flag} must be in [0, 1), got {value}")
 
 
 def _train(config: TrainConfig) -> Path:
