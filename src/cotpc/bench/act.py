@@ -19,6 +19,7 @@ import numpy as np
 import torch
 import tyro
 
+from cotpc.envs.spec import check_flags
 from cotpc.policies import Policy, get_preset, make_model
 from cotpc.training.precision import cpu_info
 
@@ -85,10 +86,9 @@ def bench(name: str, batch: int, calls: int, variants: tuple[str, ...] = ("eager
 
 def main(argv: list[str], prog: str = "cotpc bench act") -> None:
     cfg = tyro.cli(Config, args=argv, prog=prog)
-    for flag, values in (("--calls", [cfg.calls]), ("--rounds", [cfg.rounds]), ("--batch-sizes", cfg.batch_sizes),
-                         ("--threads", [cfg.threads or 1])):
-        if min(values, default=0) < 1:
-            raise SystemExit(f"{prog}: {flag} must be >= 1, got {' '.join(map(str, values))}")
+    check_flags(prog, 1, {"--calls": cfg.calls, "--rounds": cfg.rounds, "--threads": cfg.threads})
+    if min(cfg.batch_sizes, default=0) < 1:
+        raise SystemExit(f"{prog}: --batch-sizes must be >= 1, got {' '.join(map(str, cfg.batch_sizes))}")
     if cfg.threads:
         torch.set_num_threads(cfg.threads)
     rows = [row for p in cfg.policies for b in cfg.batch_sizes

@@ -33,6 +33,7 @@ import tyro
 from torch.utils.flop_counter import FlopCounterMode
 
 from cotpc.data.dataset import Stats, WindowDataset, synthetic_trajectories
+from cotpc.envs.spec import check_flags
 from cotpc.policies import PRESETS, get_preset, make_model
 from cotpc.policies.kmeans import kmeans
 from cotpc.training.precision import PrecisionChoice, autocast_for, cpu_info, synchronize, time_alternating
@@ -262,11 +263,7 @@ def format_table(r: dict) -> str:
 
 def main(argv: list[str], prog: str = "cotpc bench train") -> None:
     cfg = tyro.cli(Config, args=argv, prog=prog)
-    for flag, values in (("--rounds", [cfg.rounds]), ("--iters", [cfg.iters]),
-                         ("--threads", [cfg.threads or 1])):
-        if min(values, default=0) < 1:
-            raise SystemExit(f"{prog}: {flag} must be >= 1, got {' '.join(map(str, values))}")
-    if cfg.warmup < 0:
-        raise SystemExit(f"{prog}: --warmup must be >= 0, got {cfg.warmup}")
+    check_flags(prog, 1, {"--rounds": cfg.rounds, "--iters": cfg.iters, "--threads": cfg.threads})
+    check_flags(prog, 0, {"--warmup": cfg.warmup})
     r = run(cfg)
     print(json.dumps({"config": asdict(cfg), **r}, indent=1, default=str) if cfg.json else format_table(r))

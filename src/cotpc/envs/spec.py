@@ -15,18 +15,21 @@ import gymnasium as gym
 import numpy as np
 
 
+def check_flags(prog: str, at_least: int, flags: dict[str, int | None]) -> None:
+    """SystemExit naming the first of ``flags`` ({"--name": value}; None: unset) below ``at_least``."""
+    for flag, value in flags.items():
+        if value is not None and value < at_least:
+            raise SystemExit(f"{prog}: {flag} must be >= {at_least}, got {value}")
+
+
 def check_demo_flags(prog: str, counts: dict[str, int], positive: dict[str, int | None],
                      non_negative: dict[str, int]) -> None:
     """``cotpc demos``' flags: ``counts`` (``{"--train": n, ...}``) each >= 0 and not all 0, ``positive`` each >= 1
     (None: unset), ``non_negative`` each >= 0; SystemExit naming the first one out of range."""
-    for flag, value in {**counts, **non_negative}.items():
-        if value < 0:
-            raise SystemExit(f"{prog}: {flag} must be >= 0, got {value}")
+    check_flags(prog, 0, {**counts, **non_negative})
     if counts and not any(counts.values()):
         raise SystemExit(f"{prog}: {', '.join(counts)} are all 0: nothing to generate")
-    for flag, value in positive.items():
-        if value is not None and value < 1:
-            raise SystemExit(f"{prog}: {flag} must be >= 1, got {value}")
+    check_flags(prog, 1, positive)
 
 
 @dataclass(frozen=True)

@@ -70,6 +70,7 @@ class EvalRequest:
     Recorded in the evaluation file."""
 
     def __post_init__(self):
+        # (not envs.spec.check_flags: the environments' rollouts import this module)
         for flag, value in (("--episodes", self.episodes), ("--horizon", self.horizon), ("--procs", self.procs),
                             ("--num-envs", self.num_envs), ("--num-videos", self.num_videos),
                             ("--sampler-steps", self.sampler_steps), ("--action-horizon", self.action_horizon)):

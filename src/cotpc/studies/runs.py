@@ -23,6 +23,7 @@ from typing import Any, Callable, Optional
 import numpy as np
 import torch
 
+from cotpc.envs.spec import check_flags
 from cotpc.policies import config_from_dict, config_to_dict, get_preset, load_policy
 from cotpc.training.precision import cpu_info
 from cotpc.training.train import PROTOCOL_CHECKPOINTS, SettingsError, TrainConfig, check_settings, train
@@ -93,9 +94,7 @@ def run_config(template: TrainConfig, run_dir: Path, policy: str, seed: int) -> 
 def check_study_flags(prog: str, template: TrainConfig, policies, counts: dict[str, int | None]) -> None:
     """Before a study generates anything: the shared training flags (:func:`check_settings`), the policies, and
     ``counts`` ({"--seeds": n, "--jobs": n, ...}, each >= 1 where set); SystemExit naming the first bad one."""
-    for flag, value in counts.items():
-        if value is not None and value < 1:
-            raise SystemExit(f"{prog}: {flag} must be >= 1, got {value}")
+    check_flags(prog, 1, counts)
     try:
         check_settings(template)
         for name in policies:
