@@ -377,3 +377,18 @@ def test_validation_of_a_capped_family_scores_a_fixed_evenly_spaced_subset(data,
     assert len(torch.cat(overridden.seen)) == 40
     with pytest.raises(ValueError, match="--val-windows"):
         train(TrainConfig(data=data, out=tmp_path / "bad", iters=2, val_windows=0, **TINY))
+
+
+def test_states_only_transformer_trains_and_acts_without_past_actions(data, tmp_path):
+    # --use-actions False: the original BeT's input (states only); the flag reaches the saved config, and the
+    # loaded policy's actions do not depend on the actions it took before
+    run = train(TrainConfig(data=data, policy="bet", out=tmp_path / "run", iters=10, use_actions=False, **TINY))
+    assert json.loads((run / "config.json").read_text())["policy"]["use_actions"] is False
+    pol = load_policy(run)
+    obs = np.random.default_rng(0).normal(size=(3, 2, 6)).astype(np.float32)
+    first = [pol.select_action(o) for o in obs]
+    pol.reset()
+    pol.select_action(obs[0])
+    pol._actions[:, -1] = 123.0  # another action taken at the first step: must not matter
+    for o, a in zip(obs[1:], first[1:]):
+        assert np.array_equal(pol.select_action(o), a)

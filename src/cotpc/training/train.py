@@ -80,6 +80,9 @@ class TrainConfig:
     """Attention heads (default 8)."""
     dropout: Optional[float] = None
     """Dropout (default 0, as the official code)."""
+    use_actions: Optional[bool] = None
+    """Feed past actions to the transformer policies, interleaved with the states (default: the preset's, True,
+    as the paper's BeT and CoTPC); False conditions on the states alone, as the original BeT."""
     cot_weight: Optional[float] = None
     """lambda, the weight of the CoT loss (default: the paper's 0.1; ignored by policies without a CoT loss)."""
     state_noise: float = 0.0
@@ -382,7 +385,7 @@ def _train(config: TrainConfig) -> Path:
             n_centres=config.n_centres or defaults.n_centres,
             batch_size=config.batch_size, lr=config.lr, min_lr=config.min_lr, warmup_iters=config.warmup_iters,
             weight_decay=config.weight_decay, cot_layer=config.cot_layer, d_model=config.d_model,
-            n_layers=config.n_layers, n_heads=config.n_heads, dropout=config.dropout,
+            n_layers=config.n_layers, n_heads=config.n_heads, dropout=config.dropout, use_actions=config.use_actions,
             cot_weight=config.cot_weight if PRESETS[config.policy].cot_targets else None,
         )
     except ValueError as e:  # the preset's own consistency checks (e.g. --d-model not divisible by --n-heads)

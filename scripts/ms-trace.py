@@ -1,0 +1,173 @@
+"""Where Stack Cube episodes fail: roll a trained policy out on validation seeds and trace each step.
+
+Per step: cube A grasped / on cube B (ManiSkill3's flags), cube A's height above the table, the horizontal
+distance from cube A to cube B, the gripper command and the size of the arm command. Each episode is then put in
+the first phase it never got past:
+
+- ``no grasp``: cube A never grasped;
+- ``dropped``: grasped, then the grasp was lost before cube A was ever on cube B (with where and how: the gripper
+  command at the loss, cube A's height and its distance to B);
+- ``not placed``: grasped until the end of the episode without cube A resting on B;
+- ``not released``: cube A on B but never released there while static (ManiSkill3's success);
+- ``success``.
+
+The same for the demos' own actions, replayed open loop (a check of the tracer: every demo should be a
+success). Validation seeds only (never the test seeds)::
+
+    .venv-ms/bin/python scripts/ms-trace.py RUN --demos runs/ms/StackCube-v1/demos --episodes 50 --procs 2 \
+        --out RUN/trace_val.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import multiprocessing as mp
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cotpc.data.trajectories import load_trajectories
+from cotpc.envs.maniskill.env import flat_obs, make_env
+from cotpc.envs.maniskill.rollout import REWARD_MODE, _make_replay, policy_loader
+
+_STATE: dict = {}
+
+
+class ClippedObs:
+    """A policy fed observations clipped to [lo, hi] per dimension (an inference-time experiment)."""
+
+    def __init__(self, policy, lo: np.ndarray, hi: np.ndarray):
+        self.policy, self.lo, self.hi = policy, lo, hi
+
+    def reset(self) -> None:
+        self.policy.reset()
+
+    def select_action(self, obs: np.ndarray) -> np.ndarray:
+        return self.policy.select_action(np.clip(obs, self.lo, self.hi).astype(np.float32))
+
+
+def _init(make_policy, horizon: int, clip: tuple | None) -> None:
+    torch.set_num_threads(1)
+    policy = make_policy()
+    if clip is not None:
+        policy = ClippedObs(policy, *clip)
+    _STATE.update(env=make_env("StackCube-v1", "pd_joint_delta_pos", max_episode_steps=horizon,
+                               reward_mode=REWARD_MODE), policy=policy, horizon=horizon)
+
+
+def _f(x) -> np.ndarray:
+    return np.asarray(x.detach().cpu() if hasattr(x, "detach") else x, dtype=np.float64).reshape(-1)
+
+
+def trace(seed: int) -> dict:
+    env, policy = _STATE["env"], _STATE["policy"]
+    obs, _ = env.reset(seed=int(seed), options={"reconfigure": True})
+    policy.reset()
+    task = env.unwrapped
+    rows = []
+    for t in range(_STATE["horizon"]):
+        action = np.asarray(policy.select_action(flat_obs(obs)), dtype=np.float32)[0]
+        obs, _, _, _, info = env.step(action)
+        a, b, tcp = _f(task.cubeA.pose.p), _f(task.cubeB.pose.p), _f(task.agent.tcp.pose.p)
+        rows.append({
+            "grasped": bool(_f(info["is_cubeA_grasped"])[0]), "on_b": bool(_f(info["is_cubeA_on_cubeB"])[0]),
+            "success": bool(_f(info["success"])[0]), "a_height": float(a[2] - 0.02),
+            "xy_to_b": float(np.linalg.norm(a[:2] - b[:2])), "gripper": float(action[-1]),
+            "arm": float(np.abs(action[:-1]).max()), "tcp_to_a_xy": float(np.linalg.norm(a[:2] - tcp[:2])),
+        })
+    return {"seed": int(seed), **classify(rows), "steps": rows}
+
+
+def classify(rows: list[dict]) -> dict:
+    grasped = np.array([r["grasped"] for r in rows])
+    on_b = np.array([r["on_b"] for r in rows])
+    success = np.array([r["success"] for r in rows])
+    closes = [t for t, r in enumerate(rows) if r["gripper"] < 0]
+    # the gripper-to-cube offset when the gripper is first told to close (rows[t - 1]: the state it acted in)
+    close_offset = rows[closes[0] - 1]["tcp_to_a_xy"] if closes and closes[0] > 0 else None
+    out = {"first_grasp": int(np.argmax(grasped)) if grasped.any() else None, "close_offset_xy": close_offset,
+           "gripper_switches": int((np.diff(np.sign([r["gripper"] for r in rows])) != 0).sum()),
+           "max_height_grasped": float(max((r["a_height"] for r in rows if r["grasped"]), default=0.0)),
+           "min_xy_to_b_grasped": float(min((r["xy_to_b"] for r in rows if r["grasped"]), default=np.inf))}
+    if success.any():
+        return {**out, "phase": "success"}
+    if not grasped.any():
+        return {**out, "phase": "no grasp"}
+    first_on_b = int(np.argmax(on_b)) if on_b.any() else len(rows)
+    g = out["first_grasp"]
+    losses = [t for t in range(g + 1, first_on_b) if grasped[t - 1] and not grasped[t]]
+    if losses:
+        t = losses[0]
+        before = rows[t - 1]
+        return {**out, "phase": "dropped", "loss_step": t, "loss_gripper": rows[t]["gripper"],
+                "gripper_before_loss": [r["gripper"] for r in rows[max(0, t - 5):t + 1]],
+                "loss_height": before["a_height"], "loss_xy_to_b": before["xy_to_b"],
+                "grasped_steps_before_loss": int(t - g), "regrasped": bool(grasped[t:first_on_b].any())}
+    if not on_b.any():
+        return {**out, "phase": "not placed"}
+    return {**out, "phase": "not released", "first_on_b": first_on_b}
+
+
+def summarise(episodes: list[dict]) -> dict:
+    phases = [e["phase"] for e in episodes]
+    counts = {p: phases.count(p) for p in ("no grasp", "dropped", "not placed", "not released", "success")}
+    drops = [e for e in episodes if e["phase"] == "dropped"]
+    offsets = [e["close_offset_xy"] for e in episodes if e["close_offset_xy"] is not None]
+    summary = {"episodes": len(episodes), "phases": counts,
+               "close_offset_xy_mm": {q: round(1000 * float(np.percentile(offsets, p)), 1)
+                                      for q, p in (("p25", 25), ("median", 50), ("p75", 75))} if offsets else None,
+               "mean_gripper_switches": float(np.mean([e["gripper_switches"] for e in episodes])),
+               "mean_max_height_grasped": float(np.mean([e["max_height_grasped"] for e in episodes
+                                                         if e["first_grasp"] is not None] or [np.nan]))}
+    if drops:
+        summary["dropped"] = {
+            "gripper_command_at_loss": [round(e["loss_gripper"], 3) for e in drops],
+            "height_at_loss": [round(e["loss_height"], 3) for e in drops],
+            "xy_to_b_at_loss": [round(e["loss_xy_to_b"], 3) for e in drops],
+            "grasped_steps_before_loss": [e["grasped_steps_before_loss"] for e in drops],
+            "regrasped": sum(e["regrasped"] for e in drops),
+        }
+    return summary
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("run", help="a run directory, or 'replay' for the validation demos' own actions")
+    p.add_argument("--demos", type=Path, required=True)
+    p.add_argument("--episodes", type=int, default=50)
+    p.add_argument("--horizon", type=int, default=200)
+    p.add_argument("--procs", type=int, default=1)
+    p.add_argument("--out", type=Path)
+    p.add_argument("--action-rule", choices=("mode", "mean", "sample"), help="as cotpc eval --action-rule")
+    p.add_argument("--clip-obs", default="none",
+                   help="none; 'range' (each dimension clipped to the training demos' min-max); or a number z "
+                        "(clipped to mean +- z std of the training demos)")
+    args = p.parse_args()
+    data = load_trajectories(args.demos / "val.h5", extras=())
+    seeds = [int(ep.reset_kwargs["seed"]) for ep in data.episodes[:args.episodes]]
+    if args.run == "replay":
+        make_policy = functools.partial(_make_replay, str(args.demos / "val.h5"))
+    else:
+        make_policy = policy_loader(args.run, overrides={"action_rule": args.action_rule} if args.action_rule else None)
+    clip = None
+    if args.clip_obs != "none":
+        train = np.concatenate([ep.obs for ep in load_trajectories(args.demos / "train.h5", extras=()).episodes])
+        if args.clip_obs == "range":
+            clip = (train.min(0), train.max(0))
+        else:
+            z = float(args.clip_obs)
+            clip = (train.mean(0) - z * train.std(0), train.mean(0) + z * train.std(0))
+    with mp.get_context("spawn").Pool(args.procs, initializer=_init,
+                                      initargs=(make_policy, args.horizon, clip)) as pool:
+        episodes = pool.map(trace, seeds)
+    summary = summarise(episodes)
+    print(json.dumps(summary, indent=1))
+    if args.out:
+        args.out.write_text(json.dumps({"summary": summary, "episodes": episodes}))
+
+
+if __name__ == "__main__":
+    main()
