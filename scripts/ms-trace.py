@@ -16,6 +16,12 @@ success). Validation seeds only (never the test seeds)::
 
     .venv-ms/bin/python scripts/ms-trace.py RUN --demos runs/ms/StackCube-v1/demos --episodes 50 --procs 2 \
         --out RUN/trace_val.json
+    .venv-ms/bin/python scripts/ms-trace.py replay --demos runs/ms/StackCube-v1/demos --episodes 20
+    .venv-ms/bin/python scripts/ms-trace.py RUN --demos ... --teacher-forced     # gripper decisions on the demos
+    .venv-ms/bin/python scripts/ms-trace.py RUN --demos ... --timestep-shift -15  # how far actions follow time
+
+The summary also has where the gripper was, relative to cube A, when first told to close (median distance,
+and the mean part of it short of the cube along the gripper's way from its start, and across that way).
 """
 
 from __future__ import annotations
@@ -49,11 +55,32 @@ class ClippedObs:
         return self.policy.select_action(np.clip(obs, self.lo, self.hi).astype(np.float32))
 
 
-def _init(make_policy, horizon: int, clip: tuple | None) -> None:
+class ShiftedTime:
+    """A transformer policy told, from its second step on, that the episode is ``shift`` steps further along
+    than it is (an inference-time probe of how much its actions follow the episode timestep)."""
+
+    def __init__(self, policy, shift: int):
+        self.policy, self.shift, self.steps = policy, shift, 0
+
+    def reset(self) -> None:
+        self.policy.reset()
+        self.steps = 0
+
+    def select_action(self, obs: np.ndarray) -> np.ndarray:
+        action = self.policy.select_action(obs)
+        if self.steps == 0:
+            self.policy._t += self.shift  # the timestep of the next observation
+        self.steps += 1
+        return action
+
+
+def _init(make_policy, horizon: int, clip: tuple | None, shift: int = 0) -> None:
     torch.set_num_threads(1)
     policy = make_policy()
     if clip is not None:
         policy = ClippedObs(policy, *clip)
+    if shift:
+        policy = ShiftedTime(policy, shift)
     _STATE.update(env=make_env("StackCube-v1", "pd_joint_delta_pos", max_episode_steps=horizon,
                                reward_mode=REWARD_MODE), policy=policy, horizon=horizon)
 
@@ -67,9 +94,11 @@ def trace(seed: int) -> dict:
     obs, _ = env.reset(seed=int(seed), options={"reconfigure": True})
     policy.reset()
     task = env.unwrapped
+    start = _f(task.agent.tcp.pose.p)[:2] - _f(task.cubeA.pose.p)[:2]  # from cube A to the gripper, at reset
     rows = []
     for t in range(_STATE["horizon"]):
         action = np.asarray(policy.select_action(flat_obs(obs)), dtype=np.float32)[0]
+        before = _f(task.cubeA.pose.p)[:2] - _f(task.agent.tcp.pose.p)[:2]  # the state the action was chosen in
         obs, _, _, _, info = env.step(action)
         a, b, tcp = _f(task.cubeA.pose.p), _f(task.cubeB.pose.p), _f(task.agent.tcp.pose.p)
         rows.append({
@@ -77,18 +106,31 @@ def trace(seed: int) -> dict:
             "success": bool(_f(info["success"])[0]), "a_height": float(a[2] - 0.02),
             "xy_to_b": float(np.linalg.norm(a[:2] - b[:2])), "gripper": float(action[-1]),
             "arm": float(np.abs(action[:-1]).max()), "tcp_to_a_xy": float(np.linalg.norm(a[:2] - tcp[:2])),
+            "acted_tcp_to_a": [float(before[0]), float(before[1])],
         })
-    return {"seed": int(seed), **classify(rows), "steps": rows}
+    return {"seed": int(seed), **classify(rows, start), "steps": rows}
 
 
-def classify(rows: list[dict]) -> dict:
+def classify(rows: list[dict], start: np.ndarray | None = None) -> dict:
+    """The phase an episode never got past, and where its gripper was when first told to close; ``start`` (the
+    gripper's horizontal position relative to cube A at reset) splits that offset into ``close_short`` (along
+    the way from the start to the cube, > 0: stopped short of it) and ``close_across``."""
     grasped = np.array([r["grasped"] for r in rows])
     on_b = np.array([r["on_b"] for r in rows])
     success = np.array([r["success"] for r in rows])
     closes = [t for t, r in enumerate(rows) if r["gripper"] < 0]
     # the gripper-to-cube offset when the gripper is first told to close (rows[t - 1]: the state it acted in)
     close_offset = rows[closes[0] - 1]["tcp_to_a_xy"] if closes and closes[0] > 0 else None
+    short = across = None
+    if close_offset is not None and start is not None and "acted_tcp_to_a" in rows[closes[0]]:
+        way = -np.asarray(start, dtype=float) / max(np.linalg.norm(start), 1e-9)  # unit vector, gripper -> cube
+        off = np.asarray(rows[closes[0]]["acted_tcp_to_a"])  # from the gripper to cube A when it closed
+        short, across = float(off @ way), float(off[0] * way[1] - off[1] * way[0])
+    runs = np.diff(np.flatnonzero(np.diff(np.r_[0, grasped.astype(int), 0])).reshape(-1, 2), axis=1)
     out = {"first_grasp": int(np.argmax(grasped)) if grasped.any() else None, "close_offset_xy": close_offset,
+           "close_step": closes[0] if closes else None, "close_short": short, "close_across": across,
+           "longest_grasp": int(runs.max()) if len(runs) else 0,
+           "lifted": bool(any(r["grasped"] and r["a_height"] > 0.02 for r in rows)),
            "gripper_switches": int((np.diff(np.sign([r["gripper"] for r in rows])) != 0).sum()),
            "max_height_grasped": float(max((r["a_height"] for r in rows if r["grasped"]), default=0.0)),
            "min_xy_to_b_grasped": float(min((r["xy_to_b"] for r in rows if r["grasped"]), default=np.inf))}
@@ -111,6 +153,11 @@ def classify(rows: list[dict]) -> dict:
     return {**out, "phase": "not released", "first_on_b": first_on_b}
 
 
+def _mean_mm(values: list) -> float | None:
+    values = [v for v in values if v is not None]
+    return round(1000 * float(np.mean(values)), 1) if values else None
+
+
 def summarise(episodes: list[dict]) -> dict:
     phases = [e["phase"] for e in episodes]
     counts = {p: phases.count(p) for p in ("no grasp", "dropped", "not placed", "not released", "success")}
@@ -119,7 +166,16 @@ def summarise(episodes: list[dict]) -> dict:
     summary = {"episodes": len(episodes), "phases": counts,
                "close_offset_xy_mm": {q: round(1000 * float(np.percentile(offsets, p)), 1)
                                       for q, p in (("p25", 25), ("median", 50), ("p75", 75))} if offsets else None,
+               "close_step_median": float(np.median([e["close_step"] for e in episodes if e["close_step"] is not None]
+                                                    or [np.nan])),
+               "close_short_mm_mean": _mean_mm([e.get("close_short") for e in episodes]),
+               "close_across_mm_abs_mean": _mean_mm([abs(e["close_across"]) if e.get("close_across") is not None
+                                                     else None for e in episodes]),
                "mean_gripper_switches": float(np.mean([e["gripper_switches"] for e in episodes])),
+               # ManiSkill3's is_cubeA_grasped also holds for a step of an off-centre grasp: how many held on
+               "grasped_once": float(np.mean([e["first_grasp"] is not None for e in episodes])),
+               "held_10_steps": float(np.mean([e["longest_grasp"] >= 10 for e in episodes])),
+               "lifted_2cm": float(np.mean([e["lifted"] for e in episodes])),
                "mean_max_height_grasped": float(np.mean([e["max_height_grasped"] for e in episodes
                                                          if e["first_grasp"] is not None] or [np.nan]))}
     if drops:
@@ -133,6 +189,36 @@ def summarise(episodes: list[dict]) -> dict:
     return summary
 
 
+def teacher_forced(run: str, demos: Path, episodes: int) -> dict:
+    """The policy's gripper decisions on the validation demos' own states and past actions (no simulation): at
+    the step each demo closes the gripper, at the step it opens it, and how many of the steps between (holding)
+    or before (approaching) it gets wrong per demo; and the mean absolute error of its arm actions."""
+    from cotpc.policies import load_policy
+
+    policy = load_policy(run)
+    _, _, act_mean, act_std = policy._np_stats
+    close_wrong, release_wrong, hold_open, approach_closed, arm_err = [], [], [], [], []
+    for ep in load_trajectories(demos / "val.h5", extras=()).episodes[:episodes]:
+        policy.reset()
+        predicted = []
+        for t, action in enumerate(ep.actions):
+            predicted.append(policy.select_action(ep.obs[t:t + 1])[0])
+            policy._actions[:, -1] = (action - act_mean) / act_std  # the demo's action, not the policy's
+        predicted = np.array(predicted)
+        grip, want = np.sign(predicted[:, -1]), np.sign(ep.actions[:, -1])
+        close, release = int(np.argmax(want < 0)), int(len(want) - np.argmax(want[::-1] < 0))
+        close_wrong.append(grip[close] != -1)
+        release_wrong.append(release < len(want) and grip[release] != 1)
+        hold_open.append(int((grip[close + 1:release] == 1).sum()))
+        approach_closed.append(int((grip[:close] == -1).sum()))
+        arm_err.append(float(np.abs(predicted[:, :-1] - ep.actions[:, :-1]).mean()))
+    return {"episodes": len(close_wrong), "close_step_wrong": float(np.mean(close_wrong)),
+            "release_step_wrong": float(np.mean(release_wrong)),
+            "holding_steps_predicted_open_per_demo": float(np.mean(hold_open)),
+            "approach_steps_predicted_closed_per_demo": float(np.mean(approach_closed)),
+            "arm_abs_error": float(np.mean(arm_err))}
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("run", help="a run directory, or 'replay' for the validation demos' own actions")
@@ -142,10 +228,20 @@ def main() -> None:
     p.add_argument("--procs", type=int, default=1)
     p.add_argument("--out", type=Path)
     p.add_argument("--action-rule", choices=("mode", "mean", "sample"), help="as cotpc eval --action-rule")
+    p.add_argument("--timestep-shift", type=int, default=0,
+                   help="tell a transformer policy the episode is this many steps further along than it is")
+    p.add_argument("--teacher-forced", action="store_true",
+                   help="no rollouts: the gripper decisions on the validation demos' own states and actions")
     p.add_argument("--clip-obs", default="none",
                    help="none; 'range' (each dimension clipped to the training demos' min-max); or a number z "
                         "(clipped to mean +- z std of the training demos)")
     args = p.parse_args()
+    if args.teacher_forced:
+        summary = teacher_forced(args.run, args.demos, args.episodes)
+        print(json.dumps(summary, indent=1))
+        if args.out:
+            args.out.write_text(json.dumps({"summary": summary}))
+        return
     data = load_trajectories(args.demos / "val.h5", extras=())
     seeds = [int(ep.reset_kwargs["seed"]) for ep in data.episodes[:args.episodes]]
     if args.run == "replay":
@@ -161,7 +257,7 @@ def main() -> None:
             z = float(args.clip_obs)
             clip = (train.mean(0) - z * train.std(0), train.mean(0) + z * train.std(0))
     with mp.get_context("spawn").Pool(args.procs, initializer=_init,
-                                      initargs=(make_policy, args.horizon, clip)) as pool:
+                                      initargs=(make_policy, args.horizon, clip, args.timestep_shift)) as pool:
         episodes = pool.map(trace, seeds)
     summary = summarise(episodes)
     print(json.dumps(summary, indent=1))

@@ -44,3 +44,24 @@ def test_a_drop_records_where_and_how(trace):
     summary = trace.summarise([out, trace.classify(rows("......"))])
     assert summary["phases"]["dropped"] == 1 and summary["phases"]["no grasp"] == 1
     assert summary["dropped"]["gripper_command_at_loss"] == [1.0]
+
+
+def test_grasp_held_and_lift(trace):
+    short = trace.classify(rows("..G.G." + "G" * 3))  # grasps of 1, 1 and 3 steps: none held for 10
+    held = trace.classify(rows(".." + "G" * 12))  # held 12 steps, cube A 5 cm up: lifted
+    assert (short["longest_grasp"], held["longest_grasp"]) == (3, 12) and held["lifted"]
+    s = trace.summarise([short, held, trace.classify(rows("...."))])
+    assert s["grasped_once"] == pytest.approx(2 / 3) and s["held_10_steps"] == pytest.approx(1 / 3)
+    assert s["lifted_2cm"] == pytest.approx(2 / 3)  # rows() puts a grasped cube 5 cm up
+
+
+def test_close_offset_split_along_and_across_the_way(trace):
+    # the gripper starts 10 cm from cube A in -x; it closes (step 2) 6 mm short of the cube and 3 mm to one side
+    r = rows("..GGG", grippers=[1, 1, -1, -1, -1])
+    for row in r:
+        row["acted_tcp_to_a"] = [0.006, 0.003]
+    out = trace.classify(r, start=[-0.1, 0.0])
+    assert out["close_step"] == 2
+    assert out["close_short"] == pytest.approx(0.006) and abs(out["close_across"]) == pytest.approx(0.003)
+    s = trace.summarise([out])
+    assert s["close_short_mm_mean"] == 6.0 and s["close_across_mm_abs_mean"] == 3.0

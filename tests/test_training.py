@@ -392,3 +392,25 @@ def test_states_only_transformer_trains_and_acts_without_past_actions(data, tmp_
     pol._actions[:, -1] = 123.0  # another action taken at the first step: must not matter
     for o, a in zip(obs[1:], first[1:]):
         assert np.array_equal(pol.select_action(o), a)
+
+
+@pytest.mark.parametrize("episode_timestep", [True, False])
+def test_without_the_episode_timestep_actions_do_not_depend_on_time(data, tmp_path, episode_timestep):
+    # --episode-timestep False: the window index is the only position; the same window read at another episode
+    # step gives the same action (with the embedding it does not)
+    run = train(TrainConfig(data=data, policy="bet", out=tmp_path / "run", iters=10,
+                            episode_timestep=episode_timestep, **TINY))
+    assert json.loads((run / "config.json").read_text())["policy"]["episode_timestep"] is episode_timestep
+    pol = load_policy(run)
+    assert (pol.model.gpt.global_emb is not None) is episode_timestep
+    obs = np.random.default_rng(0).normal(size=(6, 1, 6)).astype(np.float32)
+    actions = []
+    for shift in (0, 7):
+        pol.reset()
+        out = []
+        for i, o in enumerate(obs):
+            out.append(pol.select_action(o))
+            if i == 0:
+                pol._t += shift  # the next observations arrive as if later in the episode
+        actions.append(np.concatenate(out))
+    assert np.array_equal(actions[0], actions[1]) is not episode_timestep

@@ -83,6 +83,9 @@ class TrainConfig:
     use_actions: Optional[bool] = None
     """Feed past actions to the transformer policies, interleaved with the states (default: the preset's, True,
     as the paper's BeT and CoTPC); False conditions on the states alone, as the original BeT."""
+    episode_timestep: Optional[bool] = None
+    """Give the transformer policies the episode timestep (default: the preset's, True, as the official code);
+    False: only the position in the window, so the phase must be read from the states."""
     cot_weight: Optional[float] = None
     """lambda, the weight of the CoT loss (default: the paper's 0.1; ignored by policies without a CoT loss)."""
     state_noise: float = 0.0
@@ -386,6 +389,7 @@ def _train(config: TrainConfig) -> Path:
             batch_size=config.batch_size, lr=config.lr, min_lr=config.min_lr, warmup_iters=config.warmup_iters,
             weight_decay=config.weight_decay, cot_layer=config.cot_layer, d_model=config.d_model,
             n_layers=config.n_layers, n_heads=config.n_heads, dropout=config.dropout, use_actions=config.use_actions,
+            episode_timestep=config.episode_timestep,
             cot_weight=config.cot_weight if PRESETS[config.policy].cot_targets else None,
         )
     except ValueError as e:  # the preset's own consistency checks (e.g. --d-model not divisible by --n-heads)

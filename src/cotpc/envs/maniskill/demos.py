@@ -52,20 +52,40 @@ def planner_solutions() -> dict:
 
 class Recorder(gym.Wrapper):
     """Records the actions passed to step(), the flat observations, info['success'] and (with ``key_flags_of``,
-    an env id) the task's privileged key-state flags since reset()."""
+    an env id) the task's privileged key-state flags since reset().
 
-    def __init__(self, env, record_obs: bool, key_flags_of: str | None = None):
+    With ``action_noise`` > 0 the arm part of each action (all but the last, the gripper's, dimension) is executed
+    with Gaussian noise of that std added (in normalised units, clipped to [-1, 1]) while the clean action is
+    recorded, from a generator seeded by the episode's seed: DART-style demos (Laskey et al., 2017). The
+    converter computes each joint-delta action from the *current* joint positions to the planner's next target,
+    so the recorded action after a noisy step is the correction back to the plan."""
+
+    def __init__(self, env, record_obs: bool, key_flags_of: str | None = None, action_noise: float = 0.0):
         super().__init__(env)
-        self.record_obs, self.key_flags_of = record_obs, key_flags_of
+        self.record_obs, self.key_flags_of, self.action_noise = record_obs, key_flags_of, action_noise
+        self.rng = np.random.default_rng(0)
 
     def reset(self, **kwargs):
         obs, info = self.env.reset(**kwargs)
         self.obs, self.actions, self.success = [flat_obs(obs)[0]] if self.record_obs else [], [], []
         self.key_flags = []
+        if kwargs.get("seed") is not None:
+            self.rng = np.random.default_rng(int(kwargs["seed"]))
         return obs, info
 
+    def _with_noise(self, action):
+        noise = self.rng.normal(0.0, self.action_noise, size=np.shape(action)[-1] - 1)
+        if hasattr(action, "detach"):
+            noisy = action.clone()
+            noisy[..., :-1] = (noisy[..., :-1] + torch.as_tensor(noise, dtype=noisy.dtype, device=noisy.device)).clamp(-1, 1)
+            return noisy
+        noisy = np.array(action, dtype=np.float32, copy=True)
+        noisy[..., :-1] = np.clip(noisy[..., :-1] + noise, -1, 1)
+        return noisy
+
     def step(self, action):
-        obs, reward, terminated, truncated, info = self.env.step(action)
+        executed = self._with_noise(action) if self.action_noise > 0 else action
+        obs, reward, terminated, truncated, info = self.env.step(executed)
         a = action.detach().cpu().numpy() if hasattr(action, "detach") else np.asarray(action)
         self.actions.append(np.asarray(a, dtype=np.float32).reshape(-1))
         if self.record_obs:
@@ -79,7 +99,7 @@ class Recorder(gym.Wrapper):
 class _Worker:
     """One process's environments (built once): planner env, original-mode env and target env for conversion."""
 
-    def __init__(self, env_id: str, control_mode: str):
+    def __init__(self, env_id: str, control_mode: str, action_noise: float = 0.0):
         solutions = planner_solutions()
         if env_id not in solutions:
             raise ValueError(f"ManiSkill3 has no motion-planning solution for {env_id}; choose from {sorted(solutions)}")
@@ -88,7 +108,7 @@ class _Worker:
         self.plan_env = Recorder(make_env(env_id, PLAN_CONTROL_MODE, obs_mode="none", max_episode_steps=PLAN_STEP_LIMIT), False)
         self.ori_env = make_env(env_id, PLAN_CONTROL_MODE, obs_mode="none", max_episode_steps=PLAN_STEP_LIMIT)
         self.env = Recorder(make_env(env_id, control_mode, obs_mode="state", max_episode_steps=PLAN_STEP_LIMIT), True,
-                            key_flags_of=env_id)
+                            key_flags_of=env_id, action_noise=action_noise)
 
     def run(self, seed: int) -> dict[str, Any]:
         """Plan and convert one seed: a dict with ``ok`` and, when ok, obs/actions/success and timings."""
@@ -160,10 +180,10 @@ def _cpu(x):
 _WORKER: _Worker | None = None
 
 
-def _init_worker(env_id: str, control_mode: str, threads: int = 1) -> None:
+def _init_worker(env_id: str, control_mode: str, threads: int = 1, action_noise: float = 0.0) -> None:
     global _WORKER
     torch.set_num_threads(threads)
-    _WORKER = _Worker(env_id, control_mode)
+    _WORKER = _Worker(env_id, control_mode, action_noise)
 
 
 def _run_seed(seed: int) -> dict[str, Any]:
@@ -171,8 +191,11 @@ def _run_seed(seed: int) -> dict[str, Any]:
     return _WORKER.run(seed)
 
 
-def _generation_key(env_id: str, control_mode: str, split: str, offset: int) -> dict:
-    return {"env_id": env_id, "control_mode": control_mode, "split": split, "offset": offset}
+def _generation_key(env_id: str, control_mode: str, split: str, offset: int, action_noise: float = 0.0) -> dict:
+    key = {"env_id": env_id, "control_mode": control_mode, "split": split, "offset": offset}
+    if action_noise:  # absent for clean demos, so files made before the option resume as before
+        key["action_noise"] = action_noise
+    return key
 
 
 def _load_progress(paths: list[Path], key: dict) -> tuple[list[Episode], dict] | None:
@@ -206,7 +229,9 @@ def _trajectory_set(episodes: list[Episode], env_id: str, control_mode: str, gen
     meta = {
         "source_type": "motionplanning",
         "source_desc": "ManiSkill3 official motion-planning solution (pd_joint_pos), converted with ManiSkill's "
-        f"action conversion to {control_mode}; state observations (cotpc demos maniskill)",
+        f"action conversion to {control_mode}; state observations (cotpc demos maniskill)"
+        + (f"; arm actions executed with Gaussian noise of std {gen['action_noise']} (normalised), the clean "
+           "(corrective) actions recorded" if gen.get("action_noise") else ""),
         "cotpc_generation": gen,
     }
     return TrajectorySet(episodes=episodes, env_info=env_info, meta=meta)
@@ -223,13 +248,14 @@ def generate_split(
     max_attempts: int | None = None,
     save_every: int = 25,
     progress: bool = True,
+    action_noise: float = 0.0,
 ) -> Path:
     """Generate ``num`` successful demos of ``split`` into ``OUT/<split>.{h5,json}`` (resuming saved progress)."""
     if control_mode not in CONTROL_MODES:
         raise ValueError(f"control mode must be one of {CONTROL_MODES}, got {control_mode!r}")
     out = Path(out)
     final, partial = out / split, out / f"{split}-partial"
-    key = _generation_key(env_id, control_mode, split, offset)
+    key = _generation_key(env_id, control_mode, split, offset, action_noise)
     lo, hi = SEEDS.range(split)
     found = _load_progress([final, partial], key)
     episodes, failed, next_seed, stats = [], [], lo + offset, {"plan_s": 0.0, "convert_s": 0.0}
@@ -279,9 +305,10 @@ def generate_split(
     pool = None
     try:
         if procs <= 1:
-            _init_worker(env_id, control_mode, threads=1)
+            _init_worker(env_id, control_mode, threads=1, action_noise=action_noise)
         else:
-            pool = mp.get_context("spawn").Pool(procs, initializer=_init_worker, initargs=(env_id, control_mode, 1))
+            pool = mp.get_context("spawn").Pool(procs, initializer=_init_worker,
+                                               initargs=(env_id, control_mode, 1, action_noise))
         pending: collections.deque = collections.deque()
         seed_iter = iter(range(next_seed, hi))
         while len(episodes) < num:
@@ -326,7 +353,7 @@ def generate_split(
 
 def write_splits(env_id: str, out: Path, num: int, test: int, control_mode: str = "pd_joint_delta_pos",
                  procs: int = 1, offset: int = 0, max_attempts: int | None = None,
-                 progress: bool = True, val: int = 0) -> dict[str, Path]:
+                 progress: bool = True, val: int = 0, action_noise: float = 0.0) -> dict[str, Path]:
     """``num`` training, ``val`` validation and ``test`` test demos of ``env_id`` (:func:`generate_split`),
     written to ``out/{train,val,test}.{h5,json}``; resumes or extends what is there. Returns the paths."""
     import_maniskill()
@@ -335,7 +362,8 @@ def write_splits(env_id: str, out: Path, num: int, test: int, control_mode: str 
     for split, n in (("train", num), ("val", val), ("test", test)):
         if n > 0:
             paths[split] = generate_split(env_id, split, n, out, control_mode=control_mode, procs=procs,
-                                          offset=offset, max_attempts=max_attempts, progress=progress)
+                                          offset=offset, max_attempts=max_attempts, progress=progress,
+                                          action_noise=action_noise)
     print(f"generated in {time.perf_counter() - start:.1f} s")
     return paths
 
@@ -371,11 +399,19 @@ class ManiSkillDemos:
     """Give up on a split after this many seeds (default 3 * N + 50)."""
     progress: bool = True
     """Show progress bars."""
+    action_noise: float = 0.0
+    """Execute the arm actions with Gaussian noise of this std (normalised action units; 0 = off) and record the
+    clean actions, DART-style (Laskey et al., 2017): each joint-delta action is computed from the current joint
+    positions to the plan's next target, so the demos show corrections back to the plan, which planner demos
+    otherwise never do (docs/results/maniskill.md, "Where Stack Cube episodes fail"). Not the paper's demos."""
 
 
 def make_demos(cfg: ManiSkillDemos) -> dict[str, Path]:
     """``cotpc demos maniskill`` (mani_skill is imported only when demos are made: an optional extra)."""
     check_demo_flags("cotpc demos maniskill", {"--num": cfg.num, "--val": cfg.val, "--test": cfg.test},
                      {"--procs": cfg.procs, "--max-attempts": cfg.max_attempts}, {"--offset": cfg.offset})
+    if not (np.isfinite(cfg.action_noise) and cfg.action_noise >= 0):
+        raise SystemExit(f"cotpc demos maniskill: --action-noise must be a std >= 0, got {cfg.action_noise}")
     return write_splits(cfg.env, cfg.out, cfg.num, cfg.test, control_mode=cfg.control_mode, procs=cfg.procs,
-                        offset=cfg.offset, max_attempts=cfg.max_attempts, progress=cfg.progress, val=cfg.val)
+                        offset=cfg.offset, max_attempts=cfg.max_attempts, progress=cfg.progress, val=cfg.val,
+                        action_noise=cfg.action_noise)

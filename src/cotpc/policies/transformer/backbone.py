@@ -238,7 +238,8 @@ class GPT(nn.Module):
         self.state_enc = mlp([state_dim, cfg.hidden, d])
         self.action_enc = mlp([action_dim, cfg.hidden, d]) if cfg.use_actions else None
         self.cot_tokens = nn.Parameter(torch.zeros(n_cot, d)) if n_cot else None  # no positional embedding
-        self.global_emb = nn.Embedding(max_timestep, d)  # episode timestep, DT style
+        # episode timestep, DT style (cfg.episode_timestep False: only the index in the window)
+        self.global_emb = nn.Embedding(max_timestep, d) if cfg.episode_timestep else None
         self.local_emb = nn.Parameter(torch.zeros(cfg.context, d))  # index in the window
         self.drop = _dropout(cfg.dropout)
         self.blocks = nn.ModuleList([Block(d, cfg.n_heads, cfg.dropout) for _ in range(cfg.n_layers)])
@@ -271,7 +272,7 @@ class GPT(nn.Module):
         """
         B, T, _ = states.shape
         lay = self.layout
-        pos = self.global_emb(timesteps.clamp(0, self.max_timestep - 1)) + self.local_emb  # (B, T, d)
+        pos = self.positions(timesteps)  # (B, T, d)
         s = self.state_enc(states) + pos
         parts = []
         if lay.C:
@@ -306,6 +307,14 @@ class GPT(nn.Module):
             return mask_to_bias(build_mask(self.layout, valid))
         return self.base_bias
 
+    def positions(self, timesteps: torch.Tensor) -> torch.Tensor:
+        """(B, T, d): each token's position, the episode timestep's embedding (clamped to the longest training
+        demo, so steps past it share its row) plus the index in the window; the index alone without
+        ``episode_timestep``."""
+        if self.global_emb is None:
+            return self.local_emb.expand(timesteps.shape[0], -1, -1)
+        return F.embedding(timesteps.clamp(0, self.max_timestep - 1), self.global_emb.weight) + self.local_emb
+
     def embed(self, states: torch.Tensor, actions: torch.Tensor | None, timesteps: torch.Tensor) -> torch.Tensor:
         """The input tokens (B, L, d) of :meth:`forward`, written into one buffer (no stack and cat). Slice
         assignment rather than ``torch.add(..., out=strided view)``: the same speed eager, and ``torch.compile``
@@ -313,7 +322,7 @@ class GPT(nn.Module):
         B, T, _ = states.shape
         lay = self.layout
         C = lay.C
-        pos = F.embedding(timesteps.clamp(0, self.max_timestep - 1), self.global_emb.weight) + self.local_emb
+        pos = self.positions(timesteps)
         x = torch.empty(B, lay.length, pos.shape[-1], dtype=pos.dtype, device=pos.device)
         if C:
             x[:, :C] = self.cot_tokens

@@ -40,6 +40,9 @@ class TransformerConfig(BaseConfig):
     """Dropout on embeddings, attention and residuals (the official CoTPC code trains with 0)."""
     use_actions: bool = True
     """Interleave past action tokens with state tokens (DT style, used by BeT and CoTPC in the paper)."""
+    episode_timestep: bool = True
+    """Add a learned embedding of the episode timestep to every token (DT style, as the official CoTPC code);
+    False: only the index in the window, so the policy reads the task's phase from the states alone."""
     n_cot: int = 0
     """CoT prompt tokens: 0 = none (DT/BeT), -1 = one per timestep (T, CoTPC), or an explicit count."""
     random_cot_mask: bool = True
