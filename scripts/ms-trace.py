@@ -108,7 +108,7 @@ def trace(seed: int) -> dict:
             "arm": float(np.abs(action[:-1]).max()), "tcp_to_a_xy": float(np.linalg.norm(a[:2] - tcp[:2])),
             "acted_tcp_to_a": [float(before[0]), float(before[1])],
         })
-    return {"seed": int(seed), **classify(rows, start), "steps": rows}
+    return {"seed": int(seed), **classify(rows, start), "start_tcp_from_a": start.tolist(), "steps": rows}
 
 
 def classify(rows: list[dict], start: np.ndarray | None = None) -> dict:
@@ -236,6 +236,8 @@ def main() -> None:
                    help="none; 'range' (each dimension clipped to the training demos' min-max); or a number z "
                         "(clipped to mean +- z std of the training demos)")
     args = p.parse_args()
+    if args.run != "replay" and not (Path(args.run) / "config.json").exists():
+        raise SystemExit(f"ms-trace: {args.run} is not a run directory (no config.json)")  # before any pool starts
     if args.teacher_forced:
         summary = teacher_forced(args.run, args.demos, args.episodes)
         print(json.dumps(summary, indent=1))
