@@ -22,7 +22,7 @@ class Spy(gym.Env):
         return np.zeros(2, np.float32), {}
 
     def step(self, action):
-        self.executed.append(np.array(action.detach() if hasattr(action, "detach") else action, dtype=np.float32))
+        self.executed.append(np.asarray(action.detach().numpy() if hasattr(action, "detach") else action, np.float32))
         return np.zeros(2, np.float32), 0.0, False, False, {"success": np.array([False])}
 
 
