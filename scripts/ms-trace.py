@@ -33,13 +33,11 @@ import multiprocessing as mp
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from cotpc.data.trajectories import load_trajectories
-from cotpc.envs.maniskill.env import flat_obs, make_env
-from cotpc.envs.maniskill.rollout import REWARD_MODE, _make_replay, policy_loader
-
-_STATE: dict = {}
+from cotpc.envs.maniskill import rollout
+from cotpc.envs.maniskill.env import flat_obs
+from cotpc.envs.maniskill.rollout import _make_replay, policy_loader
 
 
 class ClippedObs:
@@ -74,15 +72,14 @@ class ShiftedTime:
         return action
 
 
-def _init(make_policy, horizon: int, clip: tuple | None, shift: int = 0) -> None:
-    torch.set_num_threads(1)
+def _wrapped_policy(make_policy, clip: tuple | None, shift: int):
+    """``make_policy()`` behind the inference-time probes asked for (picklable with functools.partial)."""
     policy = make_policy()
     if clip is not None:
         policy = ClippedObs(policy, *clip)
     if shift:
         policy = ShiftedTime(policy, shift)
-    _STATE.update(env=make_env("StackCube-v1", "pd_joint_delta_pos", max_episode_steps=horizon,
-                               reward_mode=REWARD_MODE), policy=policy, horizon=horizon)
+    return policy
 
 
 def _f(x) -> np.ndarray:
@@ -90,13 +87,13 @@ def _f(x) -> np.ndarray:
 
 
 def trace(seed: int) -> dict:
-    env, policy = _STATE["env"], _STATE["policy"]
+    env, policy = rollout._STATE["env"], rollout._STATE["policy"]  # built by rollout._init_worker
     obs, _ = env.reset(seed=int(seed), options={"reconfigure": True})
     policy.reset()
     task = env.unwrapped
     start = _f(task.agent.tcp.pose.p)[:2] - _f(task.cubeA.pose.p)[:2]  # from cube A to the gripper, at reset
     rows = []
-    for t in range(_STATE["horizon"]):
+    for t in range(rollout._STATE["horizon"]):
         action = np.asarray(policy.select_action(flat_obs(obs)), dtype=np.float32)[0]
         before = _f(task.cubeA.pose.p)[:2] - _f(task.agent.tcp.pose.p)[:2]  # the state the action was chosen in
         obs, _, _, _, info = env.step(action)
@@ -258,8 +255,9 @@ def main() -> None:
         else:
             z = float(args.clip_obs)
             clip = (train.mean(0) - z * train.std(0), train.mean(0) + z * train.std(0))
-    with mp.get_context("spawn").Pool(args.procs, initializer=_init,
-                                      initargs=(make_policy, args.horizon, clip, args.timestep_shift)) as pool:
+    make_probed = functools.partial(_wrapped_policy, make_policy, clip, args.timestep_shift)
+    with mp.get_context("spawn").Pool(args.procs, initializer=rollout._init_worker,
+                                      initargs=("StackCube-v1", "pd_joint_delta_pos", args.horizon, make_probed, 1)) as pool:
         episodes = pool.map(trace, seeds)
     summary = summarise(episodes)
     print(json.dumps(summary, indent=1))
