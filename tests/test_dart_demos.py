@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from cotpc.envs.maniskill import demos as demos_module
 from cotpc.envs.maniskill.demos import ManiSkillDemos, Recorder, _generation_key, make_demos
 
 
@@ -54,3 +55,44 @@ def test_noise_is_part_of_the_generation_key_and_checked():
     assert _generation_key("StackCube-v1", "pd_joint_delta_pos", "train", 0, 0.1)["action_noise"] == 0.1
     with pytest.raises(SystemExit, match="--action-noise must be a std >= 0"):
         make_demos(ManiSkillDemos(action_noise=-0.1))
+
+
+class Holding(Spy):
+    """Spy whose object counts as grasped from the 10th step to the 29th (its one key-state flag)."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        info["is_grasped"] = np.array([10 <= len(self.executed) < 30])
+        return obs, reward, terminated, truncated, info
+
+
+def test_grasped_noise_only_while_grasped(monkeypatch):
+    monkeypatch.setitem(demos_module.KEY_STATE_FLAGS, "Holding-v0", ("is_grasped",))
+    rec = Recorder(Holding(), record_obs=True, key_flags_of="Holding-v0", action_noise=0.0, grasped_noise=0.3)
+    rec.reset(seed=5)
+    clean = np.tile(np.array([0.0, 0.0, 0.0, 1.0], np.float32), (45, 1))
+    for a in clean:
+        rec.step(a)
+    noise = np.stack(rec.env.executed)[:, :-1] - clean[:, :-1]
+    # flags describe the state after each step, so steps 10..29 (grasped after steps 9..28) are noisy
+    assert not noise[:10].any() and not noise[30:].any()
+    assert (noise[10:30] != 0).all() and 0.15 < noise[10:30].std() < 0.45
+    assert np.array_equal(np.stack(rec.actions), clean)  # the clean actions are what is recorded
+    # with grasped_noise left out, the noise (and its random draws) are exactly --action-noise's
+    plain = Recorder(Holding(), record_obs=True, key_flags_of="Holding-v0", action_noise=0.1)
+    plain.reset(seed=5)
+    for a in clean:
+        plain.step(a)
+    assert np.array_equal(np.stack(plain.env.executed), record(0.1, seed=5, actions=list(clean))[1])
+
+
+def test_grasped_noise_is_checked_and_keyed():
+    with pytest.raises(ValueError, match="needs key_flags_of"):
+        Recorder(Spy(), record_obs=True, grasped_noise=0.2)
+    key = _generation_key("StackCube-v1", "pd_joint_delta_pos", "train", 0, 0.1, 0.0)
+    assert key["grasped_noise"] == 0.0 and key["action_noise"] == 0.1  # 0 while grasped is a setting, not "off"
+    assert "grasped_noise" not in _generation_key("StackCube-v1", "pd_joint_delta_pos", "train", 0, 0.1)
+    with pytest.raises(SystemExit, match="--grasped-noise must be a std >= 0"):
+        make_demos(ManiSkillDemos(grasped_noise=float("nan")))
+    with pytest.raises(SystemExit, match="does not have"):
+        make_demos(ManiSkillDemos(env="PushCube-v1", grasped_noise=0.2))

@@ -58,11 +58,17 @@ class Recorder(gym.Wrapper):
     with Gaussian noise of that std added (in normalised units, clipped to [-1, 1]) while the clean action is
     recorded, from a generator seeded by the episode's seed: DART-style demos (Laskey et al., 2017). The
     converter computes each joint-delta action from the *current* joint positions to the planner's next target,
-    so the recorded action after a noisy step is the correction back to the plan."""
+    so the recorded action after a noisy step is the correction back to the plan. With ``grasped_noise`` (needs
+    ``key_flags_of``) that std replaces ``action_noise`` while the task's first key-state flag (the object
+    grasped) held after the previous step: larger corrections where the object is carried, the grasp untouched."""
 
-    def __init__(self, env, record_obs: bool, key_flags_of: str | None = None, action_noise: float = 0.0):
+    def __init__(self, env, record_obs: bool, key_flags_of: str | None = None, action_noise: float = 0.0,
+                 grasped_noise: float | None = None):
         super().__init__(env)
+        if grasped_noise is not None and not key_flags_of:
+            raise ValueError("grasped_noise needs key_flags_of: the grasp is read from the task's key-state flags")
         self.record_obs, self.key_flags_of, self.action_noise = record_obs, key_flags_of, action_noise
+        self.grasped_noise = grasped_noise
         self.rng = np.random.default_rng(0)
 
     def reset(self, **kwargs):
@@ -73,8 +79,13 @@ class Recorder(gym.Wrapper):
             self.rng = np.random.default_rng(int(kwargs["seed"]))
         return obs, info
 
-    def _with_noise(self, action):
-        noise = self.rng.normal(0.0, self.action_noise, size=np.shape(action)[-1] - 1)
+    def _noise_std(self) -> float:
+        if self.grasped_noise is not None and self.key_flags and self.key_flags[-1] and self.key_flags[-1][0]:
+            return self.grasped_noise
+        return self.action_noise
+
+    def _with_noise(self, action, std: float):
+        noise = self.rng.normal(0.0, std, size=np.shape(action)[-1] - 1)
         if hasattr(action, "detach"):
             noisy = action.clone()
             noisy[..., :-1] = (noisy[..., :-1] + torch.as_tensor(noise, dtype=noisy.dtype, device=noisy.device)).clamp(-1, 1)
@@ -84,7 +95,8 @@ class Recorder(gym.Wrapper):
         return noisy
 
     def step(self, action):
-        executed = self._with_noise(action) if self.action_noise > 0 else action
+        std = self._noise_std()
+        executed = self._with_noise(action, std) if std > 0 else action
         obs, reward, terminated, truncated, info = self.env.step(executed)
         a = action.detach().cpu().numpy() if hasattr(action, "detach") else np.asarray(action)
         self.actions.append(np.asarray(a, dtype=np.float32).reshape(-1))
@@ -99,7 +111,7 @@ class Recorder(gym.Wrapper):
 class _Worker:
     """One process's environments (built once): planner env, original-mode env and target env for conversion."""
 
-    def __init__(self, env_id: str, control_mode: str, action_noise: float = 0.0):
+    def __init__(self, env_id: str, control_mode: str, action_noise: float = 0.0, grasped_noise: float | None = None):
         solutions = planner_solutions()
         if env_id not in solutions:
             raise ValueError(f"ManiSkill3 has no motion-planning solution for {env_id}; choose from {sorted(solutions)}")
@@ -108,7 +120,7 @@ class _Worker:
         self.plan_env = Recorder(make_env(env_id, PLAN_CONTROL_MODE, obs_mode="none", max_episode_steps=PLAN_STEP_LIMIT), False)
         self.ori_env = make_env(env_id, PLAN_CONTROL_MODE, obs_mode="none", max_episode_steps=PLAN_STEP_LIMIT)
         self.env = Recorder(make_env(env_id, control_mode, obs_mode="state", max_episode_steps=PLAN_STEP_LIMIT), True,
-                            key_flags_of=env_id, action_noise=action_noise)
+                            key_flags_of=env_id, action_noise=action_noise, grasped_noise=grasped_noise)
 
     def run(self, seed: int) -> dict[str, Any]:
         """Plan and convert one seed: a dict with ``ok`` and, when ok, obs/actions/success and timings."""
@@ -180,10 +192,11 @@ def _cpu(x):
 _WORKER: _Worker | None = None
 
 
-def _init_worker(env_id: str, control_mode: str, threads: int = 1, action_noise: float = 0.0) -> None:
+def _init_worker(env_id: str, control_mode: str, threads: int = 1, action_noise: float = 0.0,
+                 grasped_noise: float | None = None) -> None:
     global _WORKER
     torch.set_num_threads(threads)
-    _WORKER = _Worker(env_id, control_mode, action_noise)
+    _WORKER = _Worker(env_id, control_mode, action_noise, grasped_noise)
 
 
 def _run_seed(seed: int) -> dict[str, Any]:
@@ -191,10 +204,13 @@ def _run_seed(seed: int) -> dict[str, Any]:
     return _WORKER.run(seed)
 
 
-def _generation_key(env_id: str, control_mode: str, split: str, offset: int, action_noise: float = 0.0) -> dict:
+def _generation_key(env_id: str, control_mode: str, split: str, offset: int, action_noise: float = 0.0,
+                    grasped_noise: float | None = None) -> dict:
     key = {"env_id": env_id, "control_mode": control_mode, "split": split, "offset": offset}
     if action_noise:  # absent for clean demos, so files made before the option resume as before
         key["action_noise"] = action_noise
+    if grasped_noise is not None:
+        key["grasped_noise"] = grasped_noise
     return key
 
 
@@ -230,8 +246,10 @@ def _trajectory_set(episodes: list[Episode], env_id: str, control_mode: str, gen
         "source_type": "motionplanning",
         "source_desc": "ManiSkill3 official motion-planning solution (pd_joint_pos), converted with ManiSkill's "
         f"action conversion to {control_mode}; state observations (cotpc demos maniskill)"
-        + (f"; arm actions executed with Gaussian noise of std {gen['action_noise']} (normalised), the clean "
-           "(corrective) actions recorded" if gen.get("action_noise") else ""),
+        + (f"; arm actions executed with Gaussian noise of std {gen.get('action_noise', 0.0)} (normalised)"
+           + (f", {gen['grasped_noise']} while the object is grasped" if gen.get("grasped_noise") is not None else "")
+           + ", the clean (corrective) actions recorded"
+           if gen.get("action_noise") or gen.get("grasped_noise") is not None else ""),
         "cotpc_generation": gen,
     }
     return TrajectorySet(episodes=episodes, env_info=env_info, meta=meta)
@@ -249,13 +267,14 @@ def generate_split(
     save_every: int = 25,
     progress: bool = True,
     action_noise: float = 0.0,
+    grasped_noise: float | None = None,
 ) -> Path:
     """Generate ``num`` successful demos of ``split`` into ``OUT/<split>.{h5,json}`` (resuming saved progress)."""
     if control_mode not in CONTROL_MODES:
         raise ValueError(f"control mode must be one of {CONTROL_MODES}, got {control_mode!r}")
     out = Path(out)
     final, partial = out / split, out / f"{split}-partial"
-    key = _generation_key(env_id, control_mode, split, offset, action_noise)
+    key = _generation_key(env_id, control_mode, split, offset, action_noise, grasped_noise)
     lo, hi = SEEDS.range(split)
     found = _load_progress([final, partial], key)
     episodes, failed, next_seed, stats = [], [], lo + offset, {"plan_s": 0.0, "convert_s": 0.0}
@@ -305,10 +324,10 @@ def generate_split(
     pool = None
     try:
         if procs <= 1:
-            _init_worker(env_id, control_mode, threads=1, action_noise=action_noise)
+            _init_worker(env_id, control_mode, threads=1, action_noise=action_noise, grasped_noise=grasped_noise)
         else:
             pool = mp.get_context("spawn").Pool(procs, initializer=_init_worker,
-                                               initargs=(env_id, control_mode, 1, action_noise))
+                                               initargs=(env_id, control_mode, 1, action_noise, grasped_noise))
         pending: collections.deque = collections.deque()
         seed_iter = iter(range(next_seed, hi))
         while len(episodes) < num:
@@ -353,7 +372,8 @@ def generate_split(
 
 def write_splits(env_id: str, out: Path, num: int, test: int, control_mode: str = "pd_joint_delta_pos",
                  procs: int = 1, offset: int = 0, max_attempts: int | None = None,
-                 progress: bool = True, val: int = 0, action_noise: float = 0.0) -> dict[str, Path]:
+                 progress: bool = True, val: int = 0, action_noise: float = 0.0,
+                 grasped_noise: float | None = None) -> dict[str, Path]:
     """``num`` training, ``val`` validation and ``test`` test demos of ``env_id`` (:func:`generate_split`),
     written to ``out/{train,val,test}.{h5,json}``; resumes or extends what is there. Returns the paths."""
     import_maniskill()
@@ -363,7 +383,7 @@ def write_splits(env_id: str, out: Path, num: int, test: int, control_mode: str 
         if n > 0:
             paths[split] = generate_split(env_id, split, n, out, control_mode=control_mode, procs=procs,
                                           offset=offset, max_attempts=max_attempts, progress=progress,
-                                          action_noise=action_noise)
+                                          action_noise=action_noise, grasped_noise=grasped_noise)
     print(f"generated in {time.perf_counter() - start:.1f} s")
     return paths
 
@@ -404,6 +424,10 @@ class ManiSkillDemos:
     clean actions, DART-style (Laskey et al., 2017): each joint-delta action is computed from the current joint
     positions to the plan's next target, so the demos show corrections back to the plan, which planner demos
     otherwise never do (docs/results/maniskill.md, "Where Stack Cube episodes fail"). Not the paper's demos."""
+    grasped_noise: Optional[float] = None
+    """The std in place of --action-noise while the object is grasped (the task's first privileged key-state
+    flag held after the previous step; tasks with key-state flags only): corrections where the object is carried
+    and placed, while the grasp keeps --action-noise (0.2 everywhere spoils the grasp). Default: off."""
 
 
 def make_demos(cfg: ManiSkillDemos) -> dict[str, Path]:
@@ -412,6 +436,12 @@ def make_demos(cfg: ManiSkillDemos) -> dict[str, Path]:
                      {"--procs": cfg.procs, "--max-attempts": cfg.max_attempts}, {"--offset": cfg.offset})
     if not (np.isfinite(cfg.action_noise) and cfg.action_noise >= 0):
         raise SystemExit(f"cotpc demos maniskill: --action-noise must be a std >= 0, got {cfg.action_noise}")
+    if cfg.grasped_noise is not None:
+        if not (np.isfinite(cfg.grasped_noise) and cfg.grasped_noise >= 0):
+            raise SystemExit(f"cotpc demos maniskill: --grasped-noise must be a std >= 0, got {cfg.grasped_noise}")
+        if not KEY_STATE_FLAGS.get(cfg.env):
+            raise SystemExit(f"cotpc demos maniskill: --grasped-noise reads the grasp from key-state flags, which "
+                             f"{cfg.env} does not have; tasks with them: {sorted(KEY_STATE_FLAGS)}")
     return write_splits(cfg.env, cfg.out, cfg.num, cfg.test, control_mode=cfg.control_mode, procs=cfg.procs,
                         offset=cfg.offset, max_attempts=cfg.max_attempts, progress=cfg.progress, val=cfg.val,
-                        action_noise=cfg.action_noise)
+                        action_noise=cfg.action_noise, grasped_noise=cfg.grasped_noise)
