@@ -6,7 +6,10 @@
 For each ``ROOT/P/seedS`` run it reads what `cotpc eval` and `scripts/ms-trace.py` wrote there: the validation
 curve (``checkpoints/step_N/eval_val.json`` of every kept checkpoint that was scored, and the final weights'
 ``eval_val.json`` under the run's last iteration), ``eval_unseen.json``, ``eval_seen.json`` and
-``trace_val.json``; whatever is missing is left out (a run still training, a split not yet scored). ``--extra``
+``trace_val.json``; whatever is missing is left out (a run still training, a split not yet scored). Any other
+``eval_*.json`` of the run or its checkpoints (an evaluation with other inference settings, written with
+``cotpc eval --out``, e.g. ``--action-horizon 1``) goes under ``other_evals``, keyed by its path in the run
+(the settings are in its summary). ``--extra``
 adds the trace of another run directory under NAME (a diagnosis run with another schedule). Only the
 ``summary`` block of each file is kept; the per-episode records stay in the run directories.
 """
@@ -39,6 +42,11 @@ def collect_run(run: Path) -> dict:
         scored = summary(run / f"eval_{split}.json")
         if scored is not None:
             row[split] = scored
+    standard = {"eval_val.json", "eval_unseen.json", "eval_seen.json"}
+    others = {str(path.relative_to(run)): summary(path) for path in sorted(run.glob("**/eval_*.json"))
+              if path.name not in standard}
+    if others:
+        row["other_evals"] = others
     trace = summary(run / "trace_val.json")
     if trace is not None:
         row["trace_val"] = trace
