@@ -65,8 +65,9 @@ class Recorder(gym.Wrapper):
     def __init__(self, env, record_obs: bool, key_flags_of: str | None = None, action_noise: float = 0.0,
                  grasped_noise: float | None = None):
         super().__init__(env)
-        if grasped_noise is not None and not key_flags_of:
-            raise ValueError("grasped_noise needs key_flags_of: the grasp is read from the task's key-state flags")
+        if grasped_noise is not None and not KEY_STATE_FLAGS.get(key_flags_of or ""):
+            raise ValueError("grasped_noise needs key_flags_of, a task with key-state flags: the grasp is read "
+                             "from the first of them")
         self.record_obs, self.key_flags_of, self.action_noise = record_obs, key_flags_of, action_noise
         self.grasped_noise = grasped_noise
         self.rng = np.random.default_rng(0)
@@ -80,7 +81,7 @@ class Recorder(gym.Wrapper):
         return obs, info
 
     def _noise_std(self) -> float:
-        if self.grasped_noise is not None and self.key_flags and self.key_flags[-1] and self.key_flags[-1][0]:
+        if self.grasped_noise is not None and self.key_flags and self.key_flags[-1][0]:
             return self.grasped_noise
         return self.action_noise
 
@@ -235,6 +236,16 @@ def _load_progress(paths: list[Path], key: dict) -> tuple[list[Episode], dict] |
     return best
 
 
+def _noise_description(gen: dict) -> str:
+    """How the arm actions were perturbed (DART-style), for the file's source description; "" for clean demos."""
+    grasped = gen.get("grasped_noise")
+    if not gen.get("action_noise") and grasped is None:
+        return ""
+    while_grasped = f", {grasped} while the object is grasped" if grasped is not None else ""
+    return (f"; arm actions executed with Gaussian noise of std {gen.get('action_noise', 0.0)} (normalised)"
+            f"{while_grasped}, the clean (corrective) actions recorded")
+
+
 def _trajectory_set(episodes: list[Episode], env_id: str, control_mode: str, gen: dict) -> TrajectorySet:
     env_info = {
         "env_id": env_id,
@@ -246,10 +257,7 @@ def _trajectory_set(episodes: list[Episode], env_id: str, control_mode: str, gen
         "source_type": "motionplanning",
         "source_desc": "ManiSkill3 official motion-planning solution (pd_joint_pos), converted with ManiSkill's "
         f"action conversion to {control_mode}; state observations (cotpc demos maniskill)"
-        + (f"; arm actions executed with Gaussian noise of std {gen.get('action_noise', 0.0)} (normalised)"
-           + (f", {gen['grasped_noise']} while the object is grasped" if gen.get("grasped_noise") is not None else "")
-           + ", the clean (corrective) actions recorded"
-           if gen.get("action_noise") or gen.get("grasped_noise") is not None else ""),
+        + _noise_description(gen),
         "cotpc_generation": gen,
     }
     return TrajectorySet(episodes=episodes, env_info=env_info, meta=meta)
