@@ -10,14 +10,14 @@ import torch.nn.functional as F
 
 from cotpc.data import save_trajectories
 from cotpc.data.dataset import synthetic_trajectories
-from cotpc.policies import PRESETS, TransformerConfig
+from cotpc.policies import PRESETS, TransformerConfig, get_preset, make_model
 from cotpc.policies.transformer import RowGatheredLinear
 from cotpc.policies.transformer import Layout, MaskedAttention, build_mask, mask_to_bias
 from cotpc.policies.transformer.backbone import LONG_WINDOW, attention
 from cotpc.training import TrainConfig, train
 from cotpc.training.precision import choose_precision, time_alternating
 
-from test_policies import P, build
+from test_policies import TINY, P, build
 
 
 def _qkv(B, H, L, d, dtype, seed=0):
@@ -214,18 +214,22 @@ def test_precision_probe_is_stored_and_leaves_the_run_unchanged(tmp_path):
     assert set(timing[0]["parts_s"]) == {"sample", "step", "log", "validate", "checkpoint"}
 
 
-def test_dense_offset_path_under_bf16_matches_the_gathered_one(trajs):
+@pytest.mark.parametrize("chunk", [1, 2])
+def test_dense_offset_path_under_bf16_matches_the_gathered_one(trajs, chunk):
     """Under bf16 autocast with K <= h the offset head runs dense (cheaper there); it must give the true centre's
-    offsets and gradients as the row-gathered path does, to bf16 accuracy."""
+    offsets and gradients as the row-gathered path does, to bf16 accuracy (one centre per chunk step)."""
     import cotpc.policies.transformer.model as model_module
 
     model, ds = build("cotpc", trajs)
+    if chunk > 1:
+        torch.manual_seed(0)
+        model = make_model(get_preset("cotpc", **TINY, action_chunk=chunk), model.obs_dim, model.action_dim, 25)
     hidden = torch.randn(4, 6, model.cfg.hidden)
     with torch.autocast("cpu", dtype=torch.bfloat16):
         assert model_module._dense_offsets_pay(hidden, model.cfg.n_centres) == (model.cfg.n_centres <= model.cfg.hidden)
     assert not model_module._dense_offsets_pay(hidden, model.cfg.n_centres)  # fp32 on a CPU: gathered
     feats = torch.randn(4, 6, model.cfg.d_model, requires_grad=True)
-    centre = torch.randint(0, model.cfg.n_centres, (4, 6))
+    centre = torch.randint(0, model.cfg.n_centres, (4, 6, chunk))
     results = []
     for dense in (True, False):
         saved = model_module._dense_offsets_pay

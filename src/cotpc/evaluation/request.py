@@ -62,8 +62,9 @@ class EvalRequest:
     distribution) or ``sample`` (a centre drawn from the head's probabilities, seeded: the original BeT's rule).
     The evaluation file gets an ``_mean`` / ``_sample`` suffix, so it never replaces the run's own."""
     action_horizon: Optional[int] = None
-    """Actions of each planned chunk executed before planning again, for the diffusion policies (dp, dd), instead
-    of the run's ``action_horizon`` (1 = plan at every step, closed loop). The file gets an ``_ahN`` suffix."""
+    """Actions of each planned chunk executed before planning again, for the diffusion policies (dp, dd) and the
+    transformers trained with ``--action-chunk`` (at most the chunk), instead of the run's ``action_horizon``
+    (1 = predict at every step, closed loop). The file gets an ``_ahN`` suffix."""
     compile: bool = False
     """``torch.compile`` the transformer policies' network call (one compile of ~10-20 s per batch size on a CPU;
     actions agree with the eager path to ~1e-7, not bit for bit, so a closed-loop rollout can rarely differ).
@@ -108,7 +109,7 @@ class EvalRequest:
 INFERENCE_SETTINGS = (
     ("action_rule", "--action-rule", "action_rule", "transformer"),
     ("sampler_steps", "--sampler-steps", "inference_steps", "diffusion"),
-    ("action_horizon", "--action-horizon", "action_horizon", "diffusion"),
+    ("action_horizon", "--action-horizon", "action_horizon", "diffusion and transformer"),
 )
 
 

@@ -124,7 +124,10 @@ class Policy:
     environment: an environment whose queue is empty plans (one sampler call for all environments that need
     it) from its last ``cfg.window`` states, the first one repeated before its episode's start (the start padding
     of both), and its next ``action_horizon`` calls pop the chunk (one call for Decision Diffuser, which plans at
-    every step). ``reset(envs)`` empties those environments' queues and histories.
+    every step). ``reset(envs)`` empties those environments' queues and histories. A transformer with
+    ``action_horizon`` H > 1 (trained with ``action_chunk`` >= H) also queues: an environment with an empty
+    queue predicts a chunk from its window, and its next H calls execute it; every executed action enters its
+    context as usual.
 
     At batch 1 a step is ~150 small ops, so their count matters more than their arithmetic: on a CPU the
     windows, step counters and (de)normalisation are NumPy (a small NumPy op costs a fraction of a torch op),
@@ -144,13 +147,14 @@ class Policy:
         self._network = self._compile_network() if compile else None  # None: the eager predict_window
         n = model.norm
         self._obs_mean, self._obs_std, self._act_mean, self._act_std = n.obs_mean, n.obs_std, n.act_mean, n.act_std
-        if self.device.type == "cpu" or self._chunked:  # NumPy views of the same buffers (copies on a GPU)
-            self._np_stats = tuple(x.cpu().numpy() for x in (n.obs_mean, n.obs_std, n.act_mean, n.act_std))
+        # NumPy views of the same buffers (copies on a GPU, for the queueing policies' NumPy bookkeeping)
+        self._np_stats = tuple(x.cpu().numpy() for x in (n.obs_mean, n.obs_std, n.act_mean, n.act_std))
         self._window_steps = np.arange(self.T) - (self.T - 1)  # timestep of each window index, minus the last
         self._states = None  # (B, T, q) normalised, oldest first (NumPy on a CPU)
         self._actions = None  # (B, T, p) normalised; the last slot is the action just taken (NumPy on a CPU)
         self._t = None  # (B,) NumPy: timestep of the next observation
         self._n = None  # (B,) NumPy: number of earlier steps held in the context
+        self._queue_chunks = False  # a transformer executing H > 1 actions per prediction (set per episode batch)
 
     @property
     def cfg(self) -> BaseConfig:
@@ -171,16 +175,19 @@ class Policy:
             raise ValueError(f"reset mask has {idx.shape[0]} entries for {self._states.shape[0]} environments")
         self._t[idx] = 0
         self._n[idx] = 0
-        if self._chunked:
+        if self._chunked or self._queue_chunks:
             self._queued[idx] = 0
 
     def _allocate(self, B: int) -> None:
-        if self._chunked:  # NumPy bookkeeping on any device: the sampler's network calls dominate
-            self._states = np.zeros((B, self.T, self.obs_dim), dtype=np.float32)
-            H = self.cfg.action_horizon
+        # the inference settings are read live (cotpc eval --action-horizon): fixed here for this batch's episodes
+        H = getattr(self.cfg, "action_horizon", 1)
+        self._queue_chunks = self._transformer and H > 1
+        if self._chunked or self._queue_chunks:
             self._queue = np.zeros((B, H, self.action_dim), dtype=np.float32)  # normalised actions to execute
             self._queued = np.zeros(B, dtype=np.int64)  # actions left in each queue (taken from the back)
-        elif self.device.type == "cpu":
+        if self._chunked:  # NumPy bookkeeping on any device: the sampler's network calls dominate
+            self._states = np.zeros((B, self.T, self.obs_dim), dtype=np.float32)
+        elif self.device.type == "cpu" or self._queue_chunks:  # queueing: one network call per H steps
             self._states = np.zeros((B, self.T, self.obs_dim), dtype=np.float32)
             self._actions = np.zeros((B, self.T, self.action_dim), dtype=np.float32)
         else:
@@ -204,7 +211,7 @@ class Policy:
                              f"({'it plans chunks with a sampler' if self._chunked else 'a Markovian MLP'})")
         # a CPU: the C++ wrapper; a GPU: inductor's defaults (unmeasured)
         options = {"cpp_wrapper": True} if self.device.type == "cpu" else None
-        return torch.compile(self.model.predict_window, fullgraph=True, dynamic=False, options=options)
+        return torch.compile(self.model.predict_window_chunk, fullgraph=True, dynamic=False, options=options)
 
     @torch.inference_mode()
     def select_action(self, obs) -> np.ndarray:
@@ -226,7 +233,7 @@ class Policy:
             raise ValueError(f"got {B} observations for {self._states.shape[0]} environments; call reset() first")
         if self._chunked:
             return self._step_chunked(obs)
-        if self.device.type == "cpu":
+        if self.device.type == "cpu" or self._queue_chunks:
             return self._step_cpu(obs)
         return self._step(torch.as_tensor(obs, device=self.device))
 
@@ -261,44 +268,63 @@ class Policy:
         self._states[:, :-1] = self._states[:, 1:]
         self._states[:, -1] = s
         self._actions[:, :-1] = self._actions[:, 1:]  # [:, :-1] are now this window's T-1 earlier actions
-        states, prev = torch.from_numpy(self._states), torch.from_numpy(self._actions[:, :-1])
-        a = self._predict(states, prev).numpy()
+        if self._queue_chunks:
+            a = self._next_queued()
+        else:
+            states, prev = torch.from_numpy(self._states), torch.from_numpy(self._actions[:, :-1])
+            a = self._predict(states, prev)[:, 0].numpy()
+            self._t += 1
+            self._n += 1
         self._actions[:, -1] = a
         return a * act_std + act_mean
+
+    def _next_queued(self) -> np.ndarray:
+        """(B, p) normalised actions for a transformer executing chunks: the environments whose queue is empty
+        predict a chunk from their windows (one network call), and every environment takes its queue's next."""
+        plan = np.flatnonzero(self._queued == 0)
+        if len(plan):
+            to = lambda x: torch.from_numpy(np.ascontiguousarray(x)).to(self.device)  # noqa: E731
+            chunk = self._predict(to(self._states[plan]), to(self._actions[plan, :-1]), plan).float().cpu().numpy()
+            H = self._queue.shape[1]
+            self._queue[plan] = chunk[:, :H]
+            self._queued[plan] = H
+        a = self._queue[np.arange(len(self._queued)), self._queue.shape[1] - self._queued]
+        self._queued -= 1
+        self._t += 1
+        self._n += 1
+        return a
 
     def _step(self, obs: torch.Tensor) -> np.ndarray:
         """One step on an accelerator: the same as :meth:`_step_cpu` with the buffers on the device."""
         s = (obs - self._obs_mean) / self._obs_std
         self._states = torch.cat([self._states[:, 1:], s[:, None]], dim=1)
         prev = self._actions[:, 1:]
-        a = self._predict(self._states, prev)
+        a = self._predict(self._states, prev)[:, 0]
+        self._t += 1
+        self._n += 1
         self._actions = torch.cat([prev, a[:, None]], dim=1)
         return (a * self._act_std + self._act_mean).cpu().numpy()
 
-    def _predict(self, states: torch.Tensor, prev: torch.Tensor) -> torch.Tensor:
-        """Normalised actions (B, p) for the windows ``states`` (B, T, q) and earlier actions ``prev`` (B, T-1, p);
-        advances the step counters."""
+    def _predict(self, states: torch.Tensor, prev: torch.Tensor, envs: np.ndarray | None = None) -> torch.Tensor:
+        """Normalised action chunks (B, k, p) (k = 1 but for a chunking transformer) for the windows ``states``
+        (B, T, q) and earlier actions ``prev`` (B, T-1, p) of the environments ``envs`` (default: all)."""
+        t_now, n = (self._t, self._n) if envs is None else (self._t[envs], self._n[envs])
         if self._transformer:
-            t = torch.from_numpy(self._t[:, None] + self._window_steps).to(self.device)  # (B, T); clamped inside
+            t = torch.from_numpy(t_now[:, None] + self._window_steps).to(self.device)  # (B, T); clamped inside
             if self._network is not None:
-                a = self._compiled_call(states, prev, t)
-            else:
-                # None: every context is full, the constant mask applies
-                partly_filled = self.T > 1 and self._n.min() < self.T - 1
-                a = self.model.predict_window(states, prev, t, self._n_prev() if partly_filled else None)
-        else:  # the Markovian MLP reads the current state only
-            a = self.model.predict({"states": states})
-        self._t += 1
-        self._n += 1
-        return a
+                return self._compiled_call(states, prev, t, n)
+            # None: every context is full, the constant mask applies
+            partly_filled = self.T > 1 and n.min() < self.T - 1
+            return self.model.predict_window_chunk(states, prev, t, self._n_prev(n) if partly_filled else None)
+        return self.model.predict({"states": states})[:, None]  # the Markovian MLP reads the current state only
 
-    def _n_prev(self) -> torch.Tensor:
+    def _n_prev(self, n: np.ndarray) -> torch.Tensor:
         """(B,) earlier steps each environment's window holds, capped at T - 1 (the padding mask's index)."""
-        return torch.from_numpy(np.minimum(self._n, self.T - 1)).to(self.device)
+        return torch.from_numpy(np.minimum(n, self.T - 1)).to(self.device)
 
-    def _compiled_call(self, states: torch.Tensor, prev: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    def _compiled_call(self, states: torch.Tensor, prev: torch.Tensor, t: torch.Tensor, n: np.ndarray) -> torch.Tensor:
         try:  # n_prev always given: one graph whether or not a context is partly filled
-            return self._network(states, prev, t, self._n_prev())
+            return self._network(states, prev, t, self._n_prev(n))
         except torch._dynamo.exc.BackendCompilerFailed as e:
             raise RuntimeError(
                 "select_action: compiling the policy failed (on a CPU torch.compile needs a C++ compiler, g++ or "

@@ -88,6 +88,12 @@ class TrainConfig:
     False: only the position in the window, so the phase must be read from the states."""
     cot_weight: Optional[float] = None
     """lambda, the weight of the CoT loss (default: the paper's 0.1; ignored by policies without a CoT loss)."""
+    action_chunk: Optional[int] = None
+    """Transformer policies: actions predicted per window index, a(i) .. a(i+k-1) (default 1, the paper's; not in
+    the paper: Diffusion Policy's action chunks, docs/policies.md)."""
+    action_horizon: Optional[int] = None
+    """Actions of a predicted chunk executed before predicting again (default: the preset's, 1 for the
+    transformers, 8 for dp; at most --action-chunk; `cotpc eval --action-horizon` overrides it at evaluation)."""
     state_noise: float = 0.0
     """Std of Gaussian noise added to the normalised input states of every training window (0 = off; targets stay
     clean): a regulariser against memorising the training configurations through the history."""
@@ -343,7 +349,7 @@ def check_settings(config: TrainConfig) -> None:
                                 f"{low:g}, got {value}")
 
     for name in ("iters", "context", "batch_size", "n_centres", "d_model", "n_layers", "n_heads", "val_windows",
-                 "threads", "val_every", "log_every"):
+                 "threads", "val_every", "log_every", "action_chunk", "action_horizon"):
         at_least(name, 1)
     for name in ("lr", "boundary_weight"):
         at_least(name, 0, strict=True)
@@ -391,6 +397,7 @@ def _train(config: TrainConfig) -> Path:
             n_layers=config.n_layers, n_heads=config.n_heads, dropout=config.dropout, use_actions=config.use_actions,
             episode_timestep=config.episode_timestep,
             cot_weight=config.cot_weight if PRESETS[config.policy].cot_targets else None,
+            action_chunk=config.action_chunk, action_horizon=config.action_horizon,
         )
     except ValueError as e:  # the preset's own consistency checks (e.g. --d-model not divisible by --n-heads)
         raise SettingsError(f"--policy {config.policy}: {e}") from None

@@ -84,6 +84,14 @@ class TransformerConfig(BaseConfig):
     """A second transformer predicts the CoT, which is fed (with the state) to a BeT-style action transformer."""
     hidden: int = 256
     """Hidden width of the encoders and decoders."""
+    action_chunk: int = 1
+    """Actions each window index predicts: a(i) .. a(i+k-1), Diffusion Policy's action chunks on the transformer
+    (1: one action, the paper's). Not in the paper: on ManiSkill Stack Cube, executing chunks is what lets
+    Diffusion Policy place the cube (docs/results/maniskill.md)."""
+    action_horizon: int = 1
+    """Actions of a predicted chunk executed before predicting again, a(t) .. a(t+action_horizon-1), in
+    [1, action_chunk] (an inference setting: ``cotpc eval --action-horizon``). Executed actions enter the context
+    as usual."""
 
     @property
     def n_cot_tokens(self) -> int:
@@ -100,6 +108,11 @@ class TransformerConfig(BaseConfig):
         return self.context
 
     @property
+    def future_actions(self) -> int:
+        """A window carries a(t+1) .. a(t+k-1): the chunk of its last index."""
+        return self.action_chunk - 1
+
+    @property
     def n_kmeans_centres(self) -> int:
         return self.n_centres if self.action_head == "bet" else 0
 
@@ -110,6 +123,11 @@ class TransformerConfig(BaseConfig):
             raise ValueError(f"the gmm head needs n_modes >= 1, got {self.n_modes}")
         if self.context < 1:
             raise ValueError("context must be >= 1")
+        if self.action_chunk < 1:
+            raise ValueError(f"action_chunk must be >= 1, got {self.action_chunk}")
+        if not 1 <= self.action_horizon <= self.action_chunk:
+            raise ValueError(f"action_horizon={self.action_horizon} must be in [1, action_chunk={self.action_chunk}] "
+                             f"(the actions of one predicted chunk)")
         if self.action_head == "mse" and self.action_rule != "mode":  # it would change only the file's name
             raise ValueError(f"the mse head predicts one action; action_rule {self.action_rule!r} is for the "
                              f"bet and gmm heads")

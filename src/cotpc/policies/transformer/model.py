@@ -6,7 +6,11 @@ saved in ``model.safetensors`` with the weights.
 
 A training batch is a dict of
 ``states`` (B,T,q), ``actions`` (B,T,p), ``timesteps`` (B,T) long, ``valid`` (B,T) bool (False = left padding),
-``cot`` (B,T,k*q) CoT targets (when the policy predicts a CoT) and ``cot_hide`` (B,) long (the random l).
+``cot`` (B,T,k*q) CoT targets (when the policy predicts a CoT) and ``cot_hide`` (B,) long (the random l); with
+``action_chunk`` k > 1 also ``future_actions`` (B,k-1,p), the actions after the window's last one.
+
+With ``action_chunk`` k > 1 every head predicts k actions per window index, a(i) .. a(i+k-1) (the bet head: a
+centre and its offset for each of the k steps, k groups of K classes), and the losses average over the chunk.
 """
 
 from __future__ import annotations
@@ -91,14 +95,15 @@ class TransformerPolicy(nn.Module):
         else:
             self.gpt = GPT(cfg, obs_dim, action_dim, max_timestep, n_cot)
         self.cot_head = mlp([d, h, n_targets * obs_dim]) if n_targets else None
+        k = cfg.action_chunk  # actions predicted per window index, each with its own outputs
         if cfg.action_head == "bet":
-            self.centre_head = mlp([d, h, h, cfg.n_centres])
-            self.offset_head = mlp([d, h, h, cfg.n_centres * p])
+            self.centre_head = mlp([d, h, h, k * cfg.n_centres])
+            self.offset_head = mlp([d, h, h, k * cfg.n_centres * p])
             self.register_buffer("centres", torch.zeros(cfg.n_centres, p))
         elif cfg.action_head == "gmm":  # per mode: a logit, a mean (p) and a standard deviation (p)
-            self.mixture_head = mlp([d, h, h, cfg.n_modes * (1 + 2 * p)])
+            self.mixture_head = mlp([d, h, h, k * cfg.n_modes * (1 + 2 * p)])
         else:
-            self.action_decoder = mlp([d, h, h, p])
+            self.action_decoder = mlp([d, h, h, k * p])
         self.apply(_init_weights)
         self.cot_layer = cfg.cot_layer % cfg.n_layers
         self._rows = self._train_rows()
@@ -175,18 +180,38 @@ class TransformerPolicy(nn.Module):
         return torch.where(has_prev[..., None], act_feats, state_feats)
 
     def _true_centre_offsets(self, feats: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
-        """The offset head's output for the given centre only: (B, T, d) features, (B, T) centres -> (B, T, p).
+        """The offset head's output for the given centres only: (..., d) features, (..., k) centres (one per
+        chunk step) -> (..., k, p).
 
-        Equal to reading the full (K x p) output at ``centre``, without computing the K - 1 offsets no loss
-        reads (the full last layer is K x p x hidden multiply-adds per token: most of the head's cost)."""
-        hidden = self.offset_head[:-1](feats)  # (B, T, h)
-        last = self.offset_head[-1]
-        if _dense_offsets_pay(hidden, self.cfg.n_centres):  # the dense layer, then the true centre's outputs
-            full = last(hidden).view(*centre.shape, -1, self.action_dim)  # (B, T, K, p)
-            index = centre[..., None, None].expand(*centre.shape, 1, self.action_dim)
+        Equal to reading the full (k x K x p) output at ``centre``, without computing the offsets no loss
+        reads (the full last layer is k x K x p x hidden multiply-adds per token: most of the head's cost)."""
+        hidden = self.offset_head[:-1](feats)  # (..., h)
+        last, p, K = self.offset_head[-1], self.action_dim, self.cfg.n_centres
+        if _dense_offsets_pay(hidden, centre.shape[-1] * K):  # the dense layer, then the true centres' outputs
+            full = last(hidden).view(*centre.shape, K, p)  # (..., k, K, p)
+            index = centre[..., None, None].expand(*centre.shape, 1, p)
             return full.gather(-2, index)[..., 0, :]
-        off = RowGatheredLinear.apply(hidden.flatten(0, 1), last.weight, last.bias, centre.flatten(), self.action_dim)
-        return off.view(*centre.shape, self.action_dim)
+        rows = centre + K * torch.arange(centre.shape[-1], device=centre.device)  # chunk step j's group of K
+        x = hidden[..., None, :].expand(*centre.shape, hidden.shape[-1]).reshape(-1, hidden.shape[-1])
+        off = RowGatheredLinear.apply(x, last.weight, last.bias, rows.flatten(), p)
+        return off.view(*centre.shape, p)
+
+    def _chunk_targets(self, batch: dict) -> torch.Tensor:
+        """(B, T, k, p) normalised targets: a(i) .. a(i+k-1) for each window index i, from the window's actions
+        and its ``future_actions`` (the episode's last action repeated past its end)."""
+        k, actions = self.cfg.action_chunk, batch["actions"]
+        if k == 1:
+            return actions[:, :, None]
+        future = batch.get("future_actions")
+        if future is None or future.shape[1] < k - 1:
+            raise ValueError(f"action_chunk={k} needs windows with {k - 1} future actions "
+                             f"(WindowDataset(future_actions={k - 1}))")
+        return torch.cat([actions, future[:, : k - 1]], dim=1).unfold(1, k, 1).transpose(-1, -2)
+
+    def _nearest_centre(self, target: torch.Tensor) -> torch.Tensor:
+        """Index of the k-means centre nearest each (normalised) action: (B, ..., p) -> (B, ...)."""
+        flat = target.flatten(1, -2)
+        return torch.cdist(flat, self.centres[None].expand(flat.shape[0], -1, -1)).argmin(-1).view(target.shape[:-1])
 
     def mixture(self, raw: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The gmm head's output (..., M (1 + 2p)) as mode logits (..., M), means and standard deviations
@@ -244,21 +269,23 @@ class TransformerPolicy(nn.Module):
     def _loss_terms(self, x, cot_pred, batch: dict) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         cfg = self.cfg
         valid = batch["valid"]
-        target = batch["actions"]  # normalised
+        target = self._chunk_targets(batch)  # (B, T, k, p), normalised
+        k = target.shape[2]
         metrics = {}
         if cfg.action_head == "mse":
-            pred = self.action_decoder(self._select(x, cfg.centre_from, valid)).float()
-            bc = _masked_mean(((pred - target) ** 2).mean(-1), valid)
+            pred = self.action_decoder(self._select(x, cfg.centre_from, valid)).float().unflatten(-1, (k, -1))
+            bc = _masked_mean(((pred - target) ** 2).mean((-2, -1)), valid)
             metrics["mse"] = bc
         elif cfg.action_head == "gmm":
-            bc = _masked_mean(self.mixture_nll(self.mixture_head(self._select(x, cfg.centre_from, valid)), target), valid)
+            raw = self.mixture_head(self._select(x, cfg.centre_from, valid)).unflatten(-1, (k, -1))
+            bc = _masked_mean(self.mixture_nll(raw, target).mean(-1), valid)
             metrics["nll"] = bc
         else:
-            logits = self.centre_head(self._select(x, cfg.centre_from, valid)).float()  # (B,T,K)
-            true_c = torch.cdist(target, self.centres[None].expand(target.shape[0], -1, -1)).argmin(-1)  # (B,T)
+            logits = self.centre_head(self._select(x, cfg.centre_from, valid)).float().unflatten(-1, (k, -1))
+            true_c = self._nearest_centre(target)  # (B, T, k)
             off = self._true_centre_offsets(self._select(x, cfg.offset_from, valid), true_c).float()
-            ce = F.cross_entropy(logits.flatten(0, 1), true_c.flatten(), reduction="none").view_as(true_c)
-            off_mse = ((off - (target - self.centres[true_c])) ** 2).mean(-1)
+            ce = F.cross_entropy(logits.flatten(0, 2), true_c.flatten(), reduction="none").view_as(true_c).mean(-1)
+            off_mse = ((off - (target - self.centres[true_c])) ** 2).mean((-2, -1))
             metrics["ce"], metrics["offset"] = _masked_mean(ce, valid), _masked_mean(off_mse, valid)
             bc = metrics["ce"] + cfg.offset_weight * metrics["offset"]
         total = bc
@@ -334,25 +361,26 @@ class TransformerPolicy(nn.Module):
 
     def _last_metrics(self, feats: dict, batch: dict, cot_last: torch.Tensor | None) -> dict[str, torch.Tensor]:
         cfg = self.cfg
-        target = batch["actions"][:, -1]
+        target = self._chunk_targets(batch)[:, -1]  # (B, k, p): the chunk predicted at the last index
+        k = target.shape[1]
         out: dict[str, torch.Tensor] = {}
         if cfg.action_head == "mse":
-            pred = self.action_decoder(feats[cfg.centre_from]).float()
+            pred = self.action_decoder(feats[cfg.centre_from]).float().unflatten(-1, (k, -1))
             out["bc"] = ((pred - target) ** 2).mean()
         elif cfg.action_head == "gmm":
-            raw = self.mixture_head(feats[cfg.centre_from])
+            raw = self.mixture_head(feats[cfg.centre_from]).unflatten(-1, (k, -1))
             out["bc"] = self.mixture_nll(raw, target).mean()
             pred = self.mixture_mode(raw)
         else:
-            logits = self.centre_head(feats[cfg.centre_from]).float()
-            true_c = torch.cdist(target[None], self.centres[None])[0].argmin(-1)
-            off = self._true_centre_offsets(feats[cfg.offset_from][:, None], true_c[:, None])[:, 0].float()
-            out["ce"] = F.cross_entropy(logits, true_c)
+            logits = self.centre_head(feats[cfg.centre_from]).float().unflatten(-1, (k, -1))  # (B, k, K)
+            true_c = self._nearest_centre(target)  # (B, k)
+            off = self._true_centre_offsets(feats[cfg.offset_from], true_c).float()
+            out["ce"] = F.cross_entropy(logits.flatten(0, 1), true_c.flatten())
             out["centre_acc"] = (logits.argmax(-1) == true_c).float().mean()
             out["offset"] = ((off - (target - self.centres[true_c])) ** 2).mean()
             out["bc"] = out["ce"] + cfg.offset_weight * out["offset"]
             c = logits.argmax(-1)  # what predict() outputs, from the same features
-            pred = self.centres[c] + self._true_centre_offsets(feats[cfg.offset_from][:, None], c[:, None])[:, 0].float()
+            pred = self.centres[c] + self._true_centre_offsets(feats[cfg.offset_from], c).float()
         out["action_err"] = ((pred - target) ** 2).mean()
         if cot_last is not None:
             out["cot"] = ((cot_last.float() - batch["cot"][:, -1]) ** 2).mean()
@@ -360,38 +388,50 @@ class TransformerPolicy(nn.Module):
 
     @torch.no_grad()  # the inference path writes into preallocated buffers: no autograd through it
     def predict(self, batch: dict) -> torch.Tensor:
-        """Normalised action (B, p) for the last window index (no random CoT mask)."""
-        return self._act(self._last_features(batch))
+        """Normalised action (B, p) for the last window index (no random CoT mask): the first of its chunk."""
+        return self._act(self._last_features(batch))[:, 0]
 
     @torch.no_grad()
     def predict_window(self, states, actions, timesteps, n_prev=None) -> torch.Tensor:
-        """:meth:`predict` from the window's tensors (see :meth:`_infer_features`); what ``select_action`` calls."""
+        """:meth:`predict` from the window's tensors (see :meth:`_infer_features`)."""
+        return self.predict_window_chunk(states, actions, timesteps, n_prev)[:, 0]
+
+    @torch.no_grad()
+    def predict_window_chunk(self, states, actions, timesteps, n_prev=None) -> torch.Tensor:
+        """The chunk (B, k, p) predicted at the last window index, a(t) .. a(t+k-1) (k = ``action_chunk``, 1 for
+        the paper's policies); what ``select_action`` calls."""
         return self._act(self._infer_features(states, actions, timesteps, n_prev=n_prev))
 
     def _act(self, feats: dict) -> torch.Tensor:
-        """The action heads at inference: the MSE decoder; the gmm head's most likely mean (or the mixture mean, or
-        a drawn mode's mean); the arg-max centre plus that centre's offset (or the expected action, or a drawn
-        centre plus its offset)."""
-        cfg = self.cfg
+        """The action heads at inference, (B, k, p): the MSE decoder; the gmm head's most likely mean (or the
+        mixture mean, or a drawn mode's mean); the arg-max centre plus that centre's offset (or the expected
+        action, or a drawn centre plus its offset), per chunk step."""
+        cfg, k, p = self.cfg, self.cfg.action_chunk, self.action_dim
         if cfg.action_head == "mse":
-            return run_mlp(self.action_decoder, feats[cfg.centre_from]).float()
+            return run_mlp(self.action_decoder, feats[cfg.centre_from]).float().unflatten(-1, (k, p))
         if cfg.action_head == "gmm":
-            raw = run_mlp(self.mixture_head, feats[cfg.centre_from])
+            raw = run_mlp(self.mixture_head, feats[cfg.centre_from]).unflatten(-1, (k, -1))
             if cfg.action_rule == "sample":
-                logits, means, _ = self.mixture(raw)
-                return means[torch.arange(len(means), device=means.device), self.draw_mode(logits)]
+                logits, means, _ = self.mixture(raw)  # (B, k, M), (B, k, M, p)
+                mode = self.draw_mode(logits.flatten(0, 1)).view(*logits.shape[:2], 1, 1).expand(-1, -1, 1, p)
+                return means.gather(2, mode)[:, :, 0]
             return self.mixture_mean(raw) if cfg.action_rule == "mean" else self.mixture_mode(raw)
         if cfg.action_rule == "mean":  # every centre's offset, weighted by the classifier's probabilities
-            probs = run_mlp(self.centre_head, feats[cfg.centre_from]).float().softmax(-1)  # (B, K)
-            off = run_mlp(self.offset_head, feats[cfg.offset_from]).float().view(*probs.shape, self.action_dim)
+            probs = run_mlp(self.centre_head, feats[cfg.centre_from]).float().unflatten(-1, (k, -1)).softmax(-1)
+            off = run_mlp(self.offset_head, feats[cfg.offset_from]).float().view(*probs.shape, p)  # (B, k, K, p)
             return ((self.centres + off) * probs[..., None]).sum(-2)
-        logits = run_mlp(self.centre_head, feats[cfg.centre_from]).float()
-        c = self.draw_mode(logits) if cfg.action_rule == "sample" else logits.argmax(-1)  # sample: BeT's own rule
-        # the offset of centre c only (RowGatheredLinear's forward without the autograd bookkeeping)
+        logits = run_mlp(self.centre_head, feats[cfg.centre_from]).float().unflatten(-1, (k, -1))  # (B, k, K)
+        if cfg.action_rule == "sample":  # BeT's own rule
+            c = self.draw_mode(logits.flatten(0, 1)).view(logits.shape[:2])
+        else:
+            c = logits.argmax(-1)  # (B, k)
+        # the offsets of centres c only (RowGatheredLinear's forward without the autograd bookkeeping)
         hidden = run_mlp(self.offset_head, feats[cfg.offset_from], n_layers=len(self.offset_head) - 1).float()
-        last, p = self.offset_head[-1], self.action_dim
-        w = last.weight.view(-1, p, last.weight.shape[1])[c]  # (B, p, h)
-        off = torch.bmm(w, hidden[:, :, None])[:, :, 0] + last.bias.view(-1, p)[c]
+        last = self.offset_head[-1]
+        rows = c + cfg.n_centres * torch.arange(k, device=c.device)  # chunk step j's group of K
+        w = last.weight.view(-1, p, last.weight.shape[1])[rows.flatten()]  # (B k, p, h)
+        x = hidden[:, None].expand(-1, k, -1).reshape(-1, hidden.shape[-1], 1)  # (B k, h, 1)
+        off = torch.bmm(w, x)[:, :, 0].view(*c.shape, p) + last.bias.view(-1, p)[rows]
         return self.centres[c] + off
 
 
