@@ -30,7 +30,8 @@ from cotpc.policies.transformer.backbone import GPT, run_mlp
 class RowGatheredLinear(torch.autograd.Function):
     """``linear(x, weight, bias).view(N, K, p)[arange(N), rows]`` without computing the other K - 1 groups.
 
-    x (N, h), weight (K * p, h), bias (K * p,), rows (N,) long in [0, K) -> (N, p), in fp32. The dense layer is
+    x (N, h), weight (K * p, h), bias (K * p,), rows (N,) long in [0, K) -> (N, p), in fp32; or rows (N, k),
+    ascending (k groups per row: a chunk's steps, which share x), -> (N, k, p). The dense layer is
     K x p x h multiply-adds per token, most of the offset head's cost, and only p of its K x p outputs reach the
     loss (K = 1024 in the maze; k x 128 with action chunks on ManiSkill). The p outputs of row n are a sparse
     pattern S of the dense (N, K p) product: the forward samples it (``sampled_addmm``), and the backward's
@@ -40,29 +41,31 @@ class RowGatheredLinear(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x, weight, bias, rows, p: int):
-        n, h = x.shape
-        cols = (rows[:, None] * p + torch.arange(p, device=x.device)).flatten()  # row n's p outputs
+        n = x.shape[0]
+        # row n's outputs: p per group in rows[n] ((N,) or (N, k), one group per chunk step, ascending)
+        cols = (rows.view(n, -1, 1) * p + torch.arange(p, device=x.device)).flatten()
+        m = cols.numel() // n
         x32 = x.float()
         with warnings.catch_warnings():  # torch calls the CSR layout beta; tested against the dense layer here
             warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
-            pattern = torch.sparse_csr_tensor(torch.arange(0, n * p + 1, p, device=x.device), cols,
-                                              torch.zeros(n * p, device=x.device), (n, weight.shape[0]),
-                                              check_invariants=False)  # built valid: one sorted row of p per n
-        out = torch.sparse.sampled_addmm(pattern, x32, weight.float().t(), beta=0.0).values().view(n, p)
+            pattern = torch.sparse_csr_tensor(torch.arange(0, n * m + 1, m, device=x.device), cols,
+                                              torch.zeros(n * m, device=x.device), (n, weight.shape[0]),
+                                              check_invariants=False)  # built valid: sorted columns per row
+        out = torch.sparse.sampled_addmm(pattern, x32, weight.float().t(), beta=0.0).values()
         ctx.save_for_backward(x32, weight, rows, cols)
         ctx.x_dtype, ctx.p = x.dtype, p
-        return out + bias.view(-1, p)[rows]
+        return out.view(*rows.shape, p) + bias.view(-1, p)[rows]
 
     @staticmethod
     def backward(ctx, d):
         x32, weight, rows, cols = ctx.saved_tensors
-        p, (n, h), kp = ctx.p, x32.shape, weight.shape[0]
+        p, n, kp = ctx.p, x32.shape[0], weight.shape[0]
         d = d.float().contiguous()
-        entries = torch.arange(n, device=d.device).repeat_interleave(p)
+        entries = torch.arange(n, device=d.device).repeat_interleave(cols.numel() // n)
         s = torch.sparse_coo_tensor(torch.stack([entries, cols]), d.flatten(), (n, kp), check_invariants=False)
         dx = torch.sparse.mm(s, weight.float()).to(ctx.x_dtype)
         dw = torch.sparse.mm(s.t(), x32)
-        db = torch.zeros(kp // p, p, device=d.device).index_add_(0, rows, d)
+        db = torch.zeros(kp // p, p, device=d.device).index_add_(0, rows.flatten(), d.view(-1, p))
         return dx, dw, db.view(kp), None, None
 
 
@@ -204,8 +207,8 @@ class TransformerPolicy(nn.Module):
             index = centre[..., None, None].expand(*centre.shape, 1, p)
             return full.gather(-2, index)[..., 0, :]
         rows = centre + K * torch.arange(centre.shape[-1], device=centre.device)  # chunk step j's group of K
-        x = hidden[..., None, :].expand(*centre.shape, hidden.shape[-1]).reshape(-1, hidden.shape[-1])
-        off = RowGatheredLinear.apply(x, last.weight, last.bias, rows.flatten(), p)
+        flat = rows.reshape(-1, rows.shape[-1])  # one row of x per token, shared by its chunk's k groups
+        off = RowGatheredLinear.apply(hidden.reshape(len(flat), -1), last.weight, last.bias, flat, p)
         return off.view(*centre.shape, p)
 
     def _chunk_targets(self, batch: dict) -> torch.Tensor:
