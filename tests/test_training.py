@@ -13,7 +13,7 @@ from cotpc.data import load_trajectories, save_trajectories
 from cotpc.data.dataset import MissingSubskillsError, Stats, WindowDataset, synthetic_trajectories
 from cotpc.policies import CheckpointError, load_policy
 from cotpc.training import TrainConfig, train
-from cotpc.training.train import main as train_main
+from cotpc.training.train import WeightAverage, main as train_main
 
 TINY = dict(context=4, d_model=32, n_heads=4, n_layers=2, n_centres=8, batch_size=32, progress=False,
             val_every=10, log_every=5, warmup_iters=4)
@@ -67,6 +67,41 @@ def test_resume_reaches_the_same_weights(data, tmp_path, policy):
         assert torch.equal(a[k], b[k]), k
 
 
+def test_weight_average_follows_the_warm_up_rule():
+    net = torch.nn.Linear(3, 2)
+    average = WeightAverage(net, max_decay=0.5)
+    assert not list(average.model.parameters())  # frozen: buffers only
+    average.update(net, 0)  # the first update copies
+    assert torch.equal(average.model.weight, net.weight)
+    before = net.weight.detach().clone()
+    with torch.no_grad():
+        net.weight.add_(1.0)
+    average.update(net, 1)
+    decay = 1 - 2 ** -0.75  # below the cap 0.5
+    assert torch.allclose(average.model.weight, decay * before + (1 - decay) * net.weight)
+    assert average.decay(10_000) == 0.5
+
+
+def test_averaged_weights_are_saved_validated_and_resumed_exactly(data, tmp_path):
+    kw = dict(TINY, policy="bet", ema_decay=0.9, keep_checkpoints=True)
+    full = train(TrainConfig(data=data, out=tmp_path / "full", iters=16, ckpt_every=8, **kw))
+    state = torch.load(full / "training_state.pt", weights_only=False)
+    saved = load_file(str(full / "model.safetensors"))
+    for name, value in state["ema"].items():  # the checkpoint holds the average, training_state both
+        assert torch.equal(saved[name], value), name
+    assert any(not torch.equal(state["ema"][n], state["model"][n]) for n in state["model"] if "gpt" in n)
+    assert load_policy(full / "best").select_action(np.zeros((1, 6), np.float32)).shape == (1, 2)
+    part = tmp_path / "part"
+    train(TrainConfig(data=data, out=part, iters=16, ckpt_every=8, stop_after=8, **kw))
+    train(TrainConfig(data=data, out=part, iters=16, ckpt_every=8, resume=True, **kw))
+    resumed = load_file(str(part / "model.safetensors"))
+    assert all(torch.equal(saved[n], resumed[n]) for n in saved)
+    with pytest.raises(CheckpointError, match="--ema-decay"):  # the average must not change on resume
+        train(TrainConfig(data=data, out=part, iters=24, resume=True, **dict(kw, ema_decay=0.0)))
+    with pytest.raises(ValueError, match="averages its own weights"):
+        train(TrainConfig(data=data, out=tmp_path / "dp", iters=2, **dict(kw, policy="dp")))
+
+
 def test_more_kmeans_centres_than_training_actions_is_a_clear_error(data, tmp_path, capsys):
     with pytest.raises(SystemExit):
         train_main(["--data", str(data), "--policy", "bet", "--out", str(tmp_path / "run"), "--iters", "1",
@@ -83,6 +118,7 @@ def test_more_kmeans_centres_than_training_actions_is_a_clear_error(data, tmp_pa
     (["--dropout", "1.5"], "--dropout must be in [0, 1)"),
     (["--val-fraction", "1.5"], "--val-fraction must be in [0, 1), got 1.5"),  # not silently clamped
     (["--stop-after", "0"], "--stop-after must be"),
+    (["--ema-decay", "1"], "--ema-decay must be in [0, 1), got 1"),
     (["--d-model", "30", "--n-heads", "8"], "--policy bet: d_model=30 must be divisible by n_heads=8"),
 ])
 def test_flags_out_of_range_are_one_line_errors(data, tmp_path, capsys, flags, says):

@@ -186,3 +186,13 @@ def mlp(sizes: list[int], act: type[nn.Module] = nn.ReLU) -> nn.Sequential:
         if i < len(sizes) - 2:
             layers.append(act())
     return nn.Sequential(*layers)
+
+
+def params_as_buffers(module: nn.Module) -> nn.Module:
+    """Turn every parameter of ``module`` into a buffer of the same name: a frozen copy that the optimiser, the
+    parameter count and DDP's gradient sync do not see, and that ``state_dict`` saves."""
+    for m in module.modules():
+        for name, p in list(m.named_parameters(recurse=False)):
+            delattr(m, name)
+            m.register_buffer(name, p.detach().clone())
+    return module

@@ -51,8 +51,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from cotpc.policies.base import BaseConfig, Normaliser, mlp, register_family
-from cotpc.policies.diffusion import UNet1D, make_schedulers, params_as_buffers, update_ema
+from cotpc.policies.base import BaseConfig, Normaliser, mlp, params_as_buffers, register_family
+from cotpc.policies.diffusion import UNet1D, make_schedulers, update_ema
 
 
 @dataclass(frozen=True)

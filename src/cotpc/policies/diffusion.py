@@ -26,7 +26,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from cotpc.policies.base import BaseConfig, Normaliser, register_family
+from cotpc.policies.base import BaseConfig, Normaliser, params_as_buffers, register_family
 
 
 @dataclass(frozen=True)
@@ -202,17 +202,6 @@ class UNet1D(nn.Module):
         for res1, res2, up in self.up:
             h = up(res2(res1(torch.cat([h, skips.pop()], dim=1), c), c))
         return self.final(h).transpose(1, 2)
-
-
-def params_as_buffers(module: nn.Module) -> nn.Module:
-    """Turn every parameter of ``module`` into a buffer of the same name: a frozen copy that the optimiser, the
-    parameter count and DDP's gradient sync do not see, and that ``state_dict`` saves."""
-    for m in module.modules():
-        for name, p in list(m.named_parameters(recurse=False)):
-            delattr(m, name)
-            m.register_buffer(name, p.detach().clone())
-    return module
-
 
 
 def make_schedulers(train_steps: int, clip_sample: float):

@@ -8,6 +8,8 @@ A run directory holds the latest checkpoint (``config.json`` + ``model.safetenso
 (model, optimiser, scheduler, RNG states, step: everything ``--resume`` needs), ``best/`` (the checkpoint with
 the lowest validation action error at the last window position, as at inference, on held-out demos of the
 training file), ``loop_timing.json`` (wall time of each part of the loop) and ``tb/`` (TensorBoard).
+With ``--ema-decay`` the saved checkpoints and validation hold an exponential moving average of the weights;
+``training_state.pt`` keeps the raw weights as well.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ from cotpc.data.trajectories import TrajectoryFormatError, load_trajectories
 from cotpc.envs.spec import task_defaults
 from cotpc.policies import PRESETS, get_preset
 from cotpc.policies.kmeans import kmeans
-from cotpc.policies.base import config_from_dict, config_to_dict, make_model
+from cotpc.policies.base import config_from_dict, config_to_dict, make_model, params_as_buffers
 from cotpc.policies.policy import CheckpointError, link_checkpoint, load_state, save_checkpoint
 from cotpc.training.precision import PrecisionChoice, autocast_for, choose_precision
 
@@ -104,6 +106,11 @@ class TrainConfig:
     """Steps either side of a subskill boundary that --boundary-weight covers."""
     grad_clip: float = 0.0
     """Clip the global gradient norm to this value (default 0 = off, as the paper and the official code)."""
+    ema_decay: float = 0.0
+    """Exponential moving average of the weights, for validation, best/ and every saved checkpoint (the weights
+    that are evaluated); training and --resume keep the raw ones. The largest decay (e.g. 0.999; 0 = off, as the
+    paper), reached after a warm-up as Diffusion Policy's: min(this, 1 - (1 + k)^-0.75) after k steps. Not for
+    the diffusion families, which average their own weights."""
     val_fraction: float = 0.1
     """Fraction of the file's episodes held out for the validation loss (split by episode, seeded)."""
     val_every: int = 1000
@@ -178,7 +185,7 @@ PROTOCOL_CHECKPOINTS = 20
 # The TrainConfig fields that decide how training windows are drawn and which kernels compute the step: a resumed
 # run must use the same ones to continue bit for bit (a training state saved before a field existed was trained
 # with the field's default).
-RESUME_MUST_MATCH = ("state_noise", "boundary_weight", "boundary_radius", "compile")
+RESUME_MUST_MATCH = ("state_noise", "boundary_weight", "boundary_radius", "compile", "ema_decay")
 
 
 class SettingsError(ValueError):
@@ -301,6 +308,29 @@ def train_step(train_model: nn.Module, params, batch: dict, optimizer, scheduler
     return loss, metrics
 
 
+class WeightAverage:
+    """An exponential moving average of ``model``'s weights in a frozen copy of the model (``self.model``, its
+    parameters held as buffers), which validation and checkpoints use. The step count is a host integer, so an
+    update never waits on the device."""
+
+    def __init__(self, model: nn.Module, max_decay: float, power: float = 0.75):
+        self.model = params_as_buffers(copy.deepcopy(model)).eval()
+        self.max_decay, self.power = max_decay, power
+        self._pairs = None
+
+    def decay(self, updates: int) -> float:
+        """Decay of the update after ``updates`` earlier ones: 0 (a copy) first, then DP's warm-up."""
+        return 0.0 if updates == 0 else min(self.max_decay, 1 - (1 + updates) ** -self.power)
+
+    @torch.no_grad()
+    def update(self, model: nn.Module, updates: int) -> None:
+        if self._pairs is None:  # the averaged copy's buffer for each trained parameter, by name
+            buffers = dict(self.model.named_buffers())
+            self._pairs = ([buffers[n] for n, _ in model.named_parameters()], list(model.parameters()))
+        averaged, trained = self._pairs
+        torch._foreach_lerp_(averaged, [p.detach() for p in trained], 1 - self.decay(updates))
+
+
 def make_optimizer(model: nn.Module, cfg, iters: int, device: str):
     """AdamW with decay / no-decay groups (fused kernel where available) and the warm-up + cosine schedule."""
     fused = device.startswith("cuda") or device == "cpu"
@@ -357,7 +387,8 @@ def check_settings(config: TrainConfig) -> None:
                  "grad_clip"):
         at_least(name, 0)
     at_least("stop_after", 1)
-    for flag, value in (("--dropout", config.dropout), ("--val-fraction", config.val_fraction)):
+    for flag, value in (("--dropout", config.dropout), ("--val-fraction", config.val_fraction),
+                        ("--ema-decay", config.ema_decay)):
         if value is not None and not 0 <= value < 1:
             raise SettingsError(f"{flag} must be in [0, 1), got {value}")
 
@@ -401,6 +432,9 @@ def _train(config: TrainConfig) -> Path:
         )
     except ValueError as e:  # the preset's own consistency checks (e.g. --d-model not divisible by --n-heads)
         raise SettingsError(f"--policy {config.policy}: {e}") from None
+    if config.ema_decay and hasattr(cfg, "ema_max_decay"):  # the diffusion families
+        raise SettingsError(f"--ema-decay: --policy {config.policy} already averages its own weights "
+                            f"(ema_max_decay {cfg.ema_max_decay})")
     if cfg.batch_size % world:
         raise SettingsError(f"batch size {cfg.batch_size} is not divisible by the {world} processes")
     train_eps, val_eps = split_episodes(len(trajs), config.val_fraction, config.seed)
@@ -470,6 +504,13 @@ def _train(config: TrainConfig) -> Path:
     elif not config.resume and state_path.exists():
         raise FileExistsError(f"{run_dir} already holds a run; pass --resume to continue it or choose another --out")
 
+    average = WeightAverage(model, config.ema_decay) if config.ema_decay else None
+    if average is not None and step:
+        if state.get("ema") is None:
+            raise CheckpointError(f"{state_path}: no averaged weights to resume --ema-decay from")
+        load_state(average.model, state["ema"], str(state_path))
+    evaluated = average.model if average is not None else model  # what validation and checkpoints see
+
     local_batch = cfg.batch_size // world
     if config.bf16 is None:
         choice = probe_precision(model, cfg, ds, local_batch, device, config.grad_clip) if main_proc else None
@@ -505,11 +546,12 @@ def _train(config: TrainConfig) -> Path:
         if not main_proc:
             return
         info = {**meta, "step": at, "val": val}
-        save_checkpoint(run_dir, model, info)
+        save_checkpoint(run_dir, evaluated, info)
         if config.keep_checkpoints:
             link_checkpoint(run_dir, run_dir / "checkpoints" / f"step_{at:07d}")
         state = {"step": at, "best_val": best_val, "policy": config_to_dict(cfg), "dims": [q, p],
-                 "model": model.state_dict(), "optimizer": optimizer.state_dict(),
+                 "model": model.state_dict(), "ema": average.model.state_dict() if average else None,
+                 "optimizer": optimizer.state_dict(),
                  "scheduler": scheduler.state_dict(), "rng": rng, "bf16": config.bf16,
                  **{name: getattr(config, name) for name in RESUME_MUST_MATCH}}
         tmp = state_path.with_name(state_path.name + ".tmp")
@@ -540,6 +582,8 @@ def _train(config: TrainConfig) -> Path:
         batch = ds.sample(local_batch, gen, config.state_noise)
         lap("sample")
         loss, metrics = train_step(train_model, params, batch, optimizer, scheduler, config.grad_clip, autocast)
+        if average is not None:
+            average.update(model, step)
         step += 1
         lap("step")
 
@@ -555,14 +599,14 @@ def _train(config: TrainConfig) -> Path:
             bar.update(1)
         lap("log")
         if main_proc and val_ds is not None and (step % config.val_every == 0 or step == config.iters):
-            last_val = evaluate_loss(model, val_ds, autocast, limit=config.val_windows)
+            last_val = evaluate_loss(evaluated, val_ds, autocast, limit=config.val_windows)
             for k, v in last_val.items():
                 writer.add_scalar(f"val/{k}", v, step)
             for k, v in loss_gradient_shares(model, batch, autocast).items():
                 writer.add_scalar(f"grad/{k}", v, step)
             if last_val[SELECT_ON] < best_val:  # held-out action error at inference, never test success
                 best_val = last_val[SELECT_ON]
-                save_checkpoint(run_dir / "best", model, {**meta, "step": step, "val": last_val})
+                save_checkpoint(run_dir / "best", evaluated, {**meta, "step": step, "val": last_val})
             lap("validate")
         if step % ckpt_every == 0 or step == end:
             checkpoint(step, last_val)
