@@ -196,3 +196,18 @@ def params_as_buffers(module: nn.Module) -> nn.Module:
             delattr(m, name)
             m.register_buffer(name, p.detach().clone())
     return module
+
+
+def ema_decay(updates: int, power: float, max_decay: float) -> float:
+    """Decay of an exponential moving average's update after ``updates`` earlier ones, Diffusion Policy's EMAModel
+    rule: 0 first (a copy), then ``min(max_decay, 1 - (1 + updates)^-power)``."""
+    return 0.0 if updates == 0 else min(max_decay, 1 - (1 + updates) ** -power)
+
+
+@torch.no_grad()
+def average_into(average: nn.Module, net: nn.Module, decay: float) -> None:
+    """``average`` (``net``'s parameters held as buffers, :func:`params_as_buffers`) <- decay * average + (1 -
+    decay) * net."""
+    buffers = dict(average.named_buffers())
+    names = [n for n, _ in net.named_parameters()]
+    torch._foreach_lerp_([buffers[n] for n in names], [p.detach() for p in net.parameters()], 1 - decay)

@@ -26,7 +26,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from cotpc.policies.base import BaseConfig, Normaliser, params_as_buffers, register_family
+from cotpc.policies.base import (BaseConfig, Normaliser, average_into, ema_decay, params_as_buffers,
+                                 register_family)
 
 
 @dataclass(frozen=True)
@@ -219,14 +220,11 @@ def make_schedulers(train_steps: int, clip_sample: float):
 
 @torch.no_grad()
 def update_ema(ema: nn.Module, net: nn.Module, updates: torch.Tensor, power: float, max_decay: float) -> None:
-    """Move ``ema`` (``net``'s parameters held as buffers) towards ``net``, DP's EMAModel rule: decay 0 on the
-    first update (a copy), then ``min(max_decay, 1 - (1 + k)^-power)``; counts the update in ``updates``."""
-    k = int(updates)
-    decay = 0.0 if k == 0 else min(max_decay, 1 - (1 + k) ** -power)
-    buffers = dict(ema.named_buffers())
-    names = [n for n, _ in net.named_parameters()]
-    torch._foreach_lerp_([buffers[n] for n in names], [p.detach() for p in net.parameters()], 1 - decay)
+    """Move ``ema`` (``net``'s parameters held as buffers) towards ``net`` (:func:`ema_decay`'s rule); counts the
+    update in ``updates``."""
+    average_into(ema, net, ema_decay(int(updates), power, max_decay))
     updates += 1
+
 
 class DiffusionPolicy(nn.Module):
     """Diffusion Policy: ``loss`` is the DDPM noise-prediction MSE on a window's action chunk; ``sample`` runs

@@ -37,7 +37,8 @@ from cotpc.data.trajectories import TrajectoryFormatError, load_trajectories
 from cotpc.envs.spec import task_defaults
 from cotpc.policies import PRESETS, get_preset
 from cotpc.policies.kmeans import kmeans
-from cotpc.policies.base import config_from_dict, config_to_dict, make_model, params_as_buffers
+from cotpc.policies.base import (average_into, config_from_dict, config_to_dict, ema_decay, make_model,
+                                 params_as_buffers)
 from cotpc.policies.policy import CheckpointError, link_checkpoint, load_state, save_checkpoint
 from cotpc.training.precision import PrecisionChoice, autocast_for, choose_precision
 
@@ -316,19 +317,13 @@ class WeightAverage:
     def __init__(self, model: nn.Module, max_decay: float, power: float = 0.75):
         self.model = params_as_buffers(copy.deepcopy(model)).eval()
         self.max_decay, self.power = max_decay, power
-        self._pairs = None
 
     def decay(self, updates: int) -> float:
         """Decay of the update after ``updates`` earlier ones: 0 (a copy) first, then DP's warm-up."""
-        return 0.0 if updates == 0 else min(self.max_decay, 1 - (1 + updates) ** -self.power)
+        return ema_decay(updates, self.power, self.max_decay)
 
-    @torch.no_grad()
     def update(self, model: nn.Module, updates: int) -> None:
-        if self._pairs is None:  # the averaged copy's buffer for each trained parameter, by name
-            buffers = dict(self.model.named_buffers())
-            self._pairs = ([buffers[n] for n, _ in model.named_parameters()], list(model.parameters()))
-        averaged, trained = self._pairs
-        torch._foreach_lerp_(averaged, [p.detach() for p in trained], 1 - self.decay(updates))
+        average_into(self.model, model, self.decay(updates))
 
 
 def make_optimizer(model: nn.Module, cfg, iters: int, device: str):
