@@ -254,8 +254,7 @@ class Policy:
         B = obs.shape[0]
         a = self._queue[np.arange(B), self._queue.shape[1] - self._queued]
         self._queued -= 1
-        self._t += 1
-        self._n += 1
+        self._advance()
         return a * act_std + act_mean
 
     def _step_cpu(self, obs: np.ndarray) -> np.ndarray:
@@ -273,8 +272,7 @@ class Policy:
         else:
             states, prev = torch.from_numpy(self._states), torch.from_numpy(self._actions[:, :-1])
             a = self._predict(states, prev)[:, 0].numpy()
-            self._t += 1
-            self._n += 1
+            self._advance()
         self._actions[:, -1] = a
         return a * act_std + act_mean
 
@@ -290,8 +288,7 @@ class Policy:
             self._queued[plan] = H
         a = self._queue[np.arange(len(self._queued)), self._queue.shape[1] - self._queued]
         self._queued -= 1
-        self._t += 1
-        self._n += 1
+        self._advance()
         return a
 
     def _step(self, obs: torch.Tensor) -> np.ndarray:
@@ -300,10 +297,14 @@ class Policy:
         self._states = torch.cat([self._states[:, 1:], s[:, None]], dim=1)
         prev = self._actions[:, 1:]
         a = self._predict(self._states, prev)[:, 0]
-        self._t += 1
-        self._n += 1
+        self._advance()
         self._actions = torch.cat([prev, a[:, None]], dim=1)
         return (a * self._act_std + self._act_mean).cpu().numpy()
+
+    def _advance(self) -> None:
+        """Every environment has taken one more step: the next observation's timestep and the history held."""
+        self._t += 1
+        self._n += 1
 
     def _predict(self, states: torch.Tensor, prev: torch.Tensor, envs: np.ndarray | None = None) -> torch.Tensor:
         """Normalised action chunks (B, k, p) (k = 1 but for a chunking transformer) for the windows ``states``
