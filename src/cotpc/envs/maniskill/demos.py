@@ -50,26 +50,43 @@ def planner_solutions() -> dict:
     return MP_SOLUTIONS
 
 
+@dataclass(frozen=True)
+class ArmNoise:
+    """DART-style noise on the executed arm actions (Laskey et al., 2017): Gaussian, of std ``action`` in
+    normalised action units (0 = clean demos), or ``grasped`` instead while the object is held (None = the same
+    std throughout). The recorded actions stay clean."""
+
+    action: float = 0.0
+    grasped: float | None = None
+
+    def std(self, grasped_now: bool) -> float:
+        return self.grasped if self.grasped is not None and grasped_now else self.action
+
+    def generation_key(self) -> dict:
+        """The entries a demo file's generation key holds: none for clean demos, so files made before the option
+        resume as before; a ``grasped`` of 0 is a setting, not "off"."""
+        key = {"action_noise": self.action} if self.action else {}
+        return key | ({"grasped_noise": self.grasped} if self.grasped is not None else {})
+
+
 class Recorder(gym.Wrapper):
     """Records the actions passed to step(), the flat observations, info['success'] and (with ``key_flags_of``,
     an env id) the task's privileged key-state flags since reset().
 
-    With ``action_noise`` > 0 the arm part of each action (all but the last, the gripper's, dimension) is executed
-    with Gaussian noise of that std added (in normalised units, clipped to [-1, 1]) while the clean action is
+    With ``noise`` (:class:`ArmNoise`) the arm part of each action (all but the last, the gripper's, dimension) is
+    executed with Gaussian noise added (in normalised units, clipped to [-1, 1]) while the clean action is
     recorded, from a generator seeded by the episode's seed: DART-style demos (Laskey et al., 2017). The
     converter computes each joint-delta action from the *current* joint positions to the planner's next target,
-    so the recorded action after a noisy step is the correction back to the plan. With ``grasped_noise`` (needs
-    ``key_flags_of``) that std replaces ``action_noise`` while the task's first key-state flag (the object
-    grasped) held after the previous step: larger corrections where the object is carried, the grasp untouched."""
+    so the recorded action after a noisy step is the correction back to the plan. ``noise.grasped`` (needs
+    ``key_flags_of``) applies while the task's first key-state flag (the object grasped) held after the previous
+    step: larger corrections where the object is carried, the grasp untouched."""
 
-    def __init__(self, env, record_obs: bool, key_flags_of: str | None = None, action_noise: float = 0.0,
-                 grasped_noise: float | None = None):
+    def __init__(self, env, record_obs: bool, key_flags_of: str | None = None, noise: ArmNoise = ArmNoise()):
         super().__init__(env)
-        if grasped_noise is not None and not KEY_STATE_FLAGS.get(key_flags_of or ""):
-            raise ValueError("grasped_noise needs key_flags_of, a task with key-state flags: the grasp is read "
-                             "from the first of them")
-        self.record_obs, self.key_flags_of, self.action_noise = record_obs, key_flags_of, action_noise
-        self.grasped_noise = grasped_noise
+        if noise.grasped is not None and not KEY_STATE_FLAGS.get(key_flags_of or ""):
+            raise ValueError("noise while grasped needs key_flags_of, a task with key-state flags: the grasp is "
+                             "read from the first of them")
+        self.record_obs, self.key_flags_of, self.noise = record_obs, key_flags_of, noise
         self.rng = np.random.default_rng(0)
 
     def reset(self, **kwargs):
@@ -79,11 +96,6 @@ class Recorder(gym.Wrapper):
         if kwargs.get("seed") is not None:
             self.rng = np.random.default_rng(int(kwargs["seed"]))
         return obs, info
-
-    def _noise_std(self) -> float:
-        if self.grasped_noise is not None and self.key_flags and self.key_flags[-1][0]:
-            return self.grasped_noise
-        return self.action_noise
 
     def _with_noise(self, action, std: float):
         noise = self.rng.normal(0.0, std, size=np.shape(action)[-1] - 1)
@@ -96,7 +108,7 @@ class Recorder(gym.Wrapper):
         return noisy
 
     def step(self, action):
-        std = self._noise_std()
+        std = self.noise.std(grasped_now=bool(self.key_flags and self.key_flags[-1][0]))
         executed = self._with_noise(action, std) if std > 0 else action
         obs, reward, terminated, truncated, info = self.env.step(executed)
         a = action.detach().cpu().numpy() if hasattr(action, "detach") else np.asarray(action)
@@ -112,7 +124,7 @@ class Recorder(gym.Wrapper):
 class _Worker:
     """One process's environments (built once): planner env, original-mode env and target env for conversion."""
 
-    def __init__(self, env_id: str, control_mode: str, action_noise: float = 0.0, grasped_noise: float | None = None):
+    def __init__(self, env_id: str, control_mode: str, noise: ArmNoise = ArmNoise()):
         solutions = planner_solutions()
         if env_id not in solutions:
             raise ValueError(f"ManiSkill3 has no motion-planning solution for {env_id}; choose from {sorted(solutions)}")
@@ -121,7 +133,7 @@ class _Worker:
         self.plan_env = Recorder(make_env(env_id, PLAN_CONTROL_MODE, obs_mode="none", max_episode_steps=PLAN_STEP_LIMIT), False)
         self.ori_env = make_env(env_id, PLAN_CONTROL_MODE, obs_mode="none", max_episode_steps=PLAN_STEP_LIMIT)
         self.env = Recorder(make_env(env_id, control_mode, obs_mode="state", max_episode_steps=PLAN_STEP_LIMIT), True,
-                            key_flags_of=env_id, action_noise=action_noise, grasped_noise=grasped_noise)
+                            key_flags_of=env_id, noise=noise)
 
     def run(self, seed: int) -> dict[str, Any]:
         """Plan and convert one seed: a dict with ``ok`` and, when ok, obs/actions/success and timings."""
@@ -193,11 +205,10 @@ def _cpu(x):
 _WORKER: _Worker | None = None
 
 
-def _init_worker(env_id: str, control_mode: str, threads: int = 1, action_noise: float = 0.0,
-                 grasped_noise: float | None = None) -> None:
+def _init_worker(env_id: str, control_mode: str, threads: int = 1, noise: ArmNoise = ArmNoise()) -> None:
     global _WORKER
     torch.set_num_threads(threads)
-    _WORKER = _Worker(env_id, control_mode, action_noise, grasped_noise)
+    _WORKER = _Worker(env_id, control_mode, noise)
 
 
 def _run_seed(seed: int) -> dict[str, Any]:
@@ -205,14 +216,9 @@ def _run_seed(seed: int) -> dict[str, Any]:
     return _WORKER.run(seed)
 
 
-def _generation_key(env_id: str, control_mode: str, split: str, offset: int, action_noise: float = 0.0,
-                    grasped_noise: float | None = None) -> dict:
-    key = {"env_id": env_id, "control_mode": control_mode, "split": split, "offset": offset}
-    if action_noise:  # absent for clean demos, so files made before the option resume as before
-        key["action_noise"] = action_noise
-    if grasped_noise is not None:
-        key["grasped_noise"] = grasped_noise
-    return key
+def _generation_key(env_id: str, control_mode: str, split: str, offset: int, noise: ArmNoise = ArmNoise()) -> dict:
+    return {"env_id": env_id, "control_mode": control_mode, "split": split, "offset": offset,
+            **noise.generation_key()}
 
 
 def _load_progress(paths: list[Path], key: dict) -> tuple[list[Episode], dict] | None:
@@ -274,15 +280,14 @@ def generate_split(
     max_attempts: int | None = None,
     save_every: int = 25,
     progress: bool = True,
-    action_noise: float = 0.0,
-    grasped_noise: float | None = None,
+    noise: ArmNoise = ArmNoise(),
 ) -> Path:
     """Generate ``num`` successful demos of ``split`` into ``OUT/<split>.{h5,json}`` (resuming saved progress)."""
     if control_mode not in CONTROL_MODES:
         raise ValueError(f"control mode must be one of {CONTROL_MODES}, got {control_mode!r}")
     out = Path(out)
     final, partial = out / split, out / f"{split}-partial"
-    key = _generation_key(env_id, control_mode, split, offset, action_noise, grasped_noise)
+    key = _generation_key(env_id, control_mode, split, offset, noise)
     lo, hi = SEEDS.range(split)
     found = _load_progress([final, partial], key)
     episodes, failed, next_seed, stats = [], [], lo + offset, {"plan_s": 0.0, "convert_s": 0.0}
@@ -332,10 +337,10 @@ def generate_split(
     pool = None
     try:
         if procs <= 1:
-            _init_worker(env_id, control_mode, threads=1, action_noise=action_noise, grasped_noise=grasped_noise)
+            _init_worker(env_id, control_mode, threads=1, noise=noise)
         else:
             pool = mp.get_context("spawn").Pool(procs, initializer=_init_worker,
-                                               initargs=(env_id, control_mode, 1, action_noise, grasped_noise))
+                                               initargs=(env_id, control_mode, 1, noise))
         pending: collections.deque = collections.deque()
         seed_iter = iter(range(next_seed, hi))
         while len(episodes) < num:
@@ -380,8 +385,7 @@ def generate_split(
 
 def write_splits(env_id: str, out: Path, num: int, test: int, control_mode: str = "pd_joint_delta_pos",
                  procs: int = 1, offset: int = 0, max_attempts: int | None = None,
-                 progress: bool = True, val: int = 0, action_noise: float = 0.0,
-                 grasped_noise: float | None = None) -> dict[str, Path]:
+                 progress: bool = True, val: int = 0, noise: ArmNoise = ArmNoise()) -> dict[str, Path]:
     """``num`` training, ``val`` validation and ``test`` test demos of ``env_id`` (:func:`generate_split`),
     written to ``out/{train,val,test}.{h5,json}``; resumes or extends what is there. Returns the paths."""
     import_maniskill()
@@ -391,7 +395,7 @@ def write_splits(env_id: str, out: Path, num: int, test: int, control_mode: str 
         if n > 0:
             paths[split] = generate_split(env_id, split, n, out, control_mode=control_mode, procs=procs,
                                           offset=offset, max_attempts=max_attempts, progress=progress,
-                                          action_noise=action_noise, grasped_noise=grasped_noise)
+                                          noise=noise)
     print(f"generated in {time.perf_counter() - start:.1f} s")
     return paths
 
@@ -452,4 +456,4 @@ def make_demos(cfg: ManiSkillDemos) -> dict[str, Path]:
                              f"{cfg.env} does not have; tasks with them: {sorted(KEY_STATE_FLAGS)}")
     return write_splits(cfg.env, cfg.out, cfg.num, cfg.test, control_mode=cfg.control_mode, procs=cfg.procs,
                         offset=cfg.offset, max_attempts=cfg.max_attempts, progress=cfg.progress, val=cfg.val,
-                        action_noise=cfg.action_noise, grasped_noise=cfg.grasped_noise)
+                        noise=ArmNoise(cfg.action_noise, cfg.grasped_noise))
