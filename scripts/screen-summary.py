@@ -4,10 +4,10 @@
         [--seeds 0 1 2 3 4 5] [--add NAME --how TEXT]
 
 DIR holds P/seedS run directories, each scored with `cotpc eval DIR/P/seedS --split val --out
-DIR/P/seedS/eval_val.json`. Prints each policy's validation success per seed and mean +- std (ddof 0), the
+DIR/P/seedS/eval_val.json` (and, once the setting is chosen, `--split unseen` into eval_unseen.json). Prints each policy's validation success per seed and mean +- std (ddof 0), the
 paired difference between the first two policies, and each policy against the same seeds of the reference
 (a run directory of the same layout, or a screen already stored in docs/results/maze-screens.json) +- its
-standard error. ``--add NAME`` stores the runs in that JSON under NAME (``--how`` says what differs).
+standard error, for each split scored. ``--add NAME`` stores the runs in that JSON under NAME (``--how`` says what differs).
 """
 
 from __future__ import annotations
@@ -30,6 +30,9 @@ def read_runs(root: Path, policies: list[str], seeds: list[int]) -> dict[str, di
             if not scored.is_file():
                 continue
             entry = {"val": json.loads(scored.read_text())["summary"]["success_rate"]}
+            unseen = run / "eval_unseen.json"  # scored on the test configs once the setting is chosen
+            if unseen.is_file():
+                entry["unseen"] = json.loads(unseen.read_text())["summary"]["success_rate"]
             val = json.loads((run / "config.json").read_text()).get("val") or {}
             if "last_action_err" in val:
                 entry["last_action_err"] = val["last_action_err"]
@@ -45,8 +48,9 @@ def paired(a: dict[int, float], b: dict[int, float]) -> str:
     return f"{statistics.mean(d):+.1f} +- {statistics.stdev(d) / math.sqrt(len(d)):.1f} ({len(d)} seeds)"
 
 
-def per_seed(runs: dict[str, dict], policy: str) -> dict[int, float]:
-    return {int(k.split("seed")[1]): 100 * v["val"] for k, v in runs.items() if k.split("/")[0] == policy}
+def per_seed(runs: dict[str, dict], policy: str, split: str = "val") -> dict[int, float]:
+    return {int(k.split("seed")[1]): 100 * v[split] for k, v in runs.items()
+            if k.split("/")[0] == policy and split in v}
 
 
 def main() -> None:
@@ -68,18 +72,23 @@ def main() -> None:
         ref = read_runs(args.reference, args.policies, args.seeds)
     elif args.reference_json:
         ref = json.loads(SCREENS.read_text())["screens"][args.reference_json]["runs"]
-    for p in args.policies:
-        got = per_seed(runs, p)
-        if not got:
+    for split in ("val", "unseen"):
+        if not any(split in v for v in runs.values()):
             continue
-        xs = list(got.values())
-        line = f"{p}: {' / '.join(f'{v:.0f}' for v in xs)} -> {statistics.mean(xs):.1f} +- {statistics.pstdev(xs):.1f}"
-        if ref:
-            line += f"; minus reference {paired(got, per_seed(ref, p))}"
-        print(line)
-    if len(args.policies) >= 2:
-        a, b = args.policies[:2]
-        print(f"{a} minus {b}: {paired(per_seed(runs, a), per_seed(runs, b))}")
+        print(f"{split}:")
+        for p in args.policies:
+            got = per_seed(runs, p, split)
+            if not got:
+                continue
+            xs = list(got.values())
+            line = (f"  {p}: {' / '.join(f'{v:.0f}' for v in xs)} -> {statistics.mean(xs):.1f} "
+                    f"+- {statistics.pstdev(xs):.1f}")
+            if ref:
+                line += f"; minus reference {paired(got, per_seed(ref, p, split))}"
+            print(line)
+        if len(args.policies) >= 2:
+            a, b = args.policies[:2]
+            print(f"  {a} minus {b}: {paired(per_seed(runs, a, split), per_seed(runs, b, split))}")
     if args.add:
         data = json.loads(SCREENS.read_text())
         data["screens"][args.add] = {"runs_under": str(args.dir), "how": args.how, "runs": runs}

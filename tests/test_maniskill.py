@@ -272,9 +272,12 @@ def test_reproduce_flags_reach_every_run():
     def parse(argv):  # as `cotpc reproduce maniskill ARGV` parses them
         return tyro.cli(ManiSkillReproduce, args=argv)
 
-    train = study_settings(parse(["--context", "60", "--bf16", "False", "--batch-size", "64"])).train
-    assert (train.context, train.bf16, train.batch_size) == (60, False, 64)
-    assert study_settings(parse([])).train.bf16 is None  # default: each run races the two precisions
+    train = study_settings(parse(["--context", "60", "--bf16", "False", "--batch-size", "64",
+                                  "--use-actions", "False"])).train
+    assert (train.context, train.bf16, train.batch_size, train.use_actions) == (60, False, 64, False)
+    default = study_settings(parse([])).train
+    assert default.bf16 is None  # default: each run races the two precisions
+    assert default.use_actions is None  # default: the preset's (action tokens, as the paper)
 
 
 def test_maniskill_report_for_a_task_without_stage_flags(tmp_path):

@@ -153,3 +153,19 @@ def test_bad_study_flags_fail_before_anything_is_generated(tmp_path, args, says)
     with pytest.raises(SystemExit, match=says):
         cotpc_main(["reproduce", *args, "--out", str(tmp_path / "study")])
     assert not (tmp_path / "study").exists()
+
+
+def test_maze_study_flags_reach_every_run():
+    import tyro
+
+    from cotpc.studies.maze import MazeReproduce, study_settings
+
+    def parse(argv):  # as `cotpc reproduce maze ARGV` parses them
+        return tyro.cli(MazeReproduce, args=argv)
+
+    quick = study_settings(parse(["--quick"]))
+    assert (quick.train.iters, quick.train.batch_size, quick.train.n_centres, quick.seeds) == (1500, 64, 128, 1)
+    assert quick.train.use_actions is None  # the presets' input: states and actions, as the paper
+    chosen = study_settings(parse(["--quick", "--use-actions", "False", "--iters", "30", "--cot-weight", "3"])).train
+    assert (chosen.use_actions, chosen.iters, chosen.cot_weight) == (False, 30, 3.0)
+    assert study_settings(parse([])).train.iters == 20_000  # the full study's schedule

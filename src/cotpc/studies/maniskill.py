@@ -399,6 +399,9 @@ class ManiSkillReproduce:
     ManiSkill2 with 60)."""
     n_centres: Optional[int] = None
     """k-means centres of the BeT-style heads (default: the paper's 128 for ManiSkill)."""
+    use_actions: Optional[bool] = None
+    """Feed past actions to the transformer policies (default: the presets', True, as the paper); False
+    conditions them on the states alone (`cotpc train --use-actions`; docs/results/maniskill.md, states only)."""
     num: Optional[int] = None
     """Training demos per task (default: the paper's, 500 Stack Cube and 1000 Peg Insertion)."""
     test: int = 100
@@ -448,7 +451,7 @@ def study_settings(cfg: ManiSkillReproduce) -> ManiSkillStudySettings:
         control_mode=cfg.control_mode, horizon=cfg.horizon, procs=cfg.procs, backend=cfg.backend,
         train=TrainConfig(data=cfg.out / "<task>" / "demos" / "train.h5", iters=cfg.iters, device=cfg.device,
                           batch_size=cfg.batch_size, context=cfg.context, n_centres=cfg.n_centres,
-                          keep_checkpoints=cfg.keep_checkpoints, compile=cfg.compile, bf16=cfg.bf16),
+                          use_actions=cfg.use_actions, keep_checkpoints=cfg.keep_checkpoints, compile=cfg.compile, bf16=cfg.bf16),
     )
 
 

@@ -463,6 +463,9 @@ class MazeReproduce:
     iterations, in results.json and val_success.png): choose a schedule without the test configs."""
     cot_weight: Optional[float] = None
     """lambda, the weight of the CoT loss of the CoT policies (default: the paper's 0.1)."""
+    use_actions: Optional[bool] = None
+    """Feed past actions to the transformer policies (default: the presets', True, as the paper); False
+    conditions them on the states alone (`cotpc train --use-actions`; docs/results/maze.md, states only)."""
     grad_clip: Optional[float] = None
     """Clip the global gradient norm of every run to this value (default: off, as the paper)."""
     compile: Literal["off", "default", "reduce-overhead"] = "off"
@@ -472,10 +475,10 @@ class MazeReproduce:
     and picks the faster, which on a busy machine can differ between runs)."""
 
 
-def reproduce(cfg: MazeReproduce) -> dict:
-    """``cotpc reproduce maze``: resolve the flags (--quick, the task's defaults), run the study, print a summary."""
+def study_settings(cfg: MazeReproduce) -> ReproduceSettings:
+    """The study the flags ask for: --quick and the task's defaults resolved."""
     quick = QUICK if cfg.quick else {}
-    settings = ReproduceSettings(
+    return ReproduceSettings(
         out=cfg.out,
         seeds=quick.get("seeds", cfg.seeds),
         policies=tuple(cfg.policies or quick.get("policies", BASELINES)),
@@ -493,8 +496,14 @@ def reproduce(cfg: MazeReproduce) -> dict:
             batch_size=cfg.batch_size if cfg.batch_size is not None else quick.get("batch_size"),
             n_centres=cfg.n_centres if cfg.n_centres is not None else quick.get("n_centres"),
             keep_checkpoints=cfg.keep_checkpoints, cot_weight=cfg.cot_weight, compile=cfg.compile, bf16=cfg.bf16,
+            use_actions=cfg.use_actions,
             **({"grad_clip": cfg.grad_clip} if cfg.grad_clip is not None else {})),
     )
+
+
+def reproduce(cfg: MazeReproduce) -> dict:
+    """``cotpc reproduce maze``: resolve the flags (--quick, the task's defaults), run the study, print a summary."""
+    settings = study_settings(cfg)
     check_study_flags("cotpc reproduce maze", settings.train, settings.policies + settings.ablations,
                       {"--seeds": settings.seeds, "--jobs": settings.jobs, "--workers": settings.workers,
                        "--train-demos": settings.train_demos})
