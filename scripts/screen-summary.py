@@ -4,10 +4,11 @@
         [--seeds 0 1 2 3 4 5] [--add NAME --how TEXT]
 
 DIR holds P/seedS run directories, each scored with `cotpc eval DIR/P/seedS --split val --out
-DIR/P/seedS/eval_val.json` (and, once the setting is chosen, `--split unseen` into eval_unseen.json). Prints each policy's validation success per seed and mean +- std (ddof 0), the
+DIR/P/seedS/eval_val.json` (and, once the setting is chosen on validation, `--split unseen` into
+eval_unseen.json). For each split scored, prints each policy's success per seed and mean +- std (ddof 0), the
 paired difference between the first two policies, and each policy against the same seeds of the reference
 (a run directory of the same layout, or a screen already stored in docs/results/maze-screens.json) +- its
-standard error, for each split scored. ``--add NAME`` stores the runs in that JSON under NAME (``--how`` says what differs).
+standard error. ``--add NAME`` stores the runs in that JSON under NAME (``--how`` says what differs).
 """
 
 from __future__ import annotations
