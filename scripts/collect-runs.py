@@ -40,8 +40,8 @@ def collect_run(run: Path) -> dict:
             unseen_by_checkpoint[step] = scored
     final = summary(run / "eval_val.json")
     if final is not None:
-        step = json.loads((run / "config.json").read_text()).get("step")  # the iteration the weights were saved at
-        curve[str(step) if step is not None else "final"] = final
+        saved_at = json.loads((run / "config.json").read_text()).get("step")  # the iteration of the final weights
+        curve[str(saved_at) if saved_at is not None else "final"] = final
     if curve:
         row["val_curve_50_episodes"] = curve
     for split in ("unseen", "seen"):
