@@ -165,6 +165,10 @@ TRANSFORMER_PRESETS: dict[str, TransformerConfig] = {
     # CoTPC with the official code's action decoder (an MLP on the state token, MSE loss) instead of the paper's
     # k-means centre + offset heads: the head DT has, with the CoT prompt and loss (docs/results/maze.md).
     "cotpc-mse": dataclasses.replace(_COTPC, name="cotpc-mse", action_head="mse", offset_from="state"),
+    # The same decoder on the leak-free design: one regressed action per step, so no arg-max between k-means
+    # centres can flip the gripper open and shut at the grasp (docs/results/maniskill.md, "Four times the demos").
+    "cotpc-causal-mse": dataclasses.replace(_COTPC, name="cotpc-causal-mse", cot_attention="causal",
+                                            random_cot_mask=False, action_head="mse", offset_from="state"),
     # CoTPC with a continuous multi-modal head: the mixture keeps the modes the MSE head averages (a maze action
     # component is +-[1.5, 4]: the MSE head's mean of the two signs lands near 0) without k-means' quantisation.
     "cotpc-gmm": dataclasses.replace(_COTPC, name="cotpc-gmm", action_head="gmm", offset_from="state"),
