@@ -166,7 +166,8 @@ TRANSFORMER_PRESETS: dict[str, TransformerConfig] = {
     # k-means centre + offset heads: the head DT has, with the CoT prompt and loss (docs/results/maze.md).
     "cotpc-mse": dataclasses.replace(_COTPC, name="cotpc-mse", action_head="mse", offset_from="state"),
     # The same decoder on the leak-free design: one regressed action per step, no arg-max among k-means centres
-    # (on Stack Cube its gripper chatters at the grasp as the k-means head's does: maniskill.md, "Four times the demos").
+    # (on Stack Cube its gripper chatters at the grasp as the k-means head's does: maniskill.md, "Four times
+    # the demos").
     "cotpc-causal-mse": dataclasses.replace(_COTPC, name="cotpc-causal-mse", cot_attention="causal",
                                             random_cot_mask=False, action_head="mse", offset_from="state"),
     # CoTPC with a continuous multi-modal head: the mixture keeps the modes the MSE head averages (a maze action
