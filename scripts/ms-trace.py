@@ -72,9 +72,37 @@ class ShiftedTime:
         return action
 
 
-def _wrapped_policy(make_policy, clip: tuple | None, shift: int):
+class DebouncedGripper:
+    """A policy whose gripper command (the last action dimension, +1 open / -1 closed) changes sign only once the
+    policy has asked for the new sign ``steps`` times in a row (an inference-time probe: one-step flips are
+    ignored, deliberate ones delayed by ``steps - 1``)."""
+
+    def __init__(self, policy, steps: int):
+        self.policy, self.steps = policy, steps
+        self.reset()
+
+    def reset(self) -> None:
+        self.policy.reset()
+        self.command, self.streak = None, 0
+
+    def select_action(self, obs: np.ndarray) -> np.ndarray:
+        action = np.array(self.policy.select_action(obs), dtype=np.float32, copy=True)
+        wanted = 1.0 if action[0, -1] >= 0 else -1.0
+        if self.command is None:
+            self.command = wanted
+        self.streak = self.streak + 1 if wanted != self.command else 0
+        if self.streak >= self.steps:
+            self.command, self.streak = wanted, 0
+        if np.sign(action[0, -1]) != self.command:
+            action[0, -1] = self.command
+        return action
+
+
+def _wrapped_policy(make_policy, clip: tuple | None, shift: int, debounce: int = 1):
     """``make_policy()`` behind the inference-time probes asked for (picklable with functools.partial)."""
     policy = make_policy()
+    if debounce > 1:
+        policy = DebouncedGripper(policy, debounce)
     if clip is not None:
         policy = ClippedObs(policy, *clip)
     if shift:
@@ -232,6 +260,8 @@ def main() -> None:
     p.add_argument("--clip-obs", default="none",
                    help="none; 'range' (each dimension clipped to the training demos' min-max); or a number z "
                         "(clipped to mean +- z std of the training demos)")
+    p.add_argument("--gripper-debounce", type=int, default=1,
+                   help="switch the gripper command only after this many steps asking for it in a row (1 = off)")
     args = p.parse_args()
     if args.run != "replay" and not (Path(args.run) / "config.json").exists():
         raise SystemExit(f"ms-trace: {args.run} is not a run directory (no config.json)")  # before any pool starts
@@ -255,7 +285,8 @@ def main() -> None:
         else:
             z = float(args.clip_obs)
             clip = (train.mean(0) - z * train.std(0), train.mean(0) + z * train.std(0))
-    make_probed = functools.partial(_wrapped_policy, make_policy, clip, args.timestep_shift)
+    make_probed = functools.partial(_wrapped_policy, make_policy, clip, args.timestep_shift,
+                                    args.gripper_debounce)
     with mp.get_context("spawn").Pool(args.procs, initializer=rollout._init_worker,
                                       initargs=("StackCube-v1", "pd_joint_delta_pos", args.horizon, make_probed, 1)) as pool:
         episodes = pool.map(trace, seeds)

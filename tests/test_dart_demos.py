@@ -96,3 +96,25 @@ def test_grasped_noise_is_checked_and_keyed():
         make_demos(ManiSkillDemos(grasped_noise=float("nan")))
     with pytest.raises(SystemExit, match="does not have"):
         make_demos(ManiSkillDemos(env="PushCube-v1", grasped_noise=0.2))
+
+
+def test_close_holds_are_cut_to_the_steps_asked_for():
+    # a planner's pd_joint_pos actions: approach, a 6-step hold after closing, a lift, a 6-step hold after opening
+    approach = [[0.1 * t, 0.0, 1.0] for t in range(3)]
+    hold_closed = [[0.2, 0.0, -1.0]] * 6
+    lift = [[0.2, 0.1 * t, -1.0] for t in range(1, 4)]
+    hold_open = [[0.2, 0.3, 1.0]] * 6
+    plan = np.array(approach + hold_closed + lift + hold_open, dtype=np.float32)
+    cut = demos_module.shorten_close_holds(plan, keep=2)
+    assert np.array_equal(cut, np.array(approach + hold_closed[:2] + lift + hold_open, dtype=np.float32))
+    assert np.array_equal(demos_module.shorten_close_holds(plan, keep=6), plan)  # the planner's own hold
+    assert len(demos_module.shorten_close_holds(plan, keep=1)) == len(plan) - 5
+    with pytest.raises(ValueError, match="keep must be >= 1"):
+        demos_module.shorten_close_holds(plan, keep=0)
+
+
+def test_close_hold_is_part_of_the_generation_key_and_checked():
+    assert "close_hold" not in _generation_key("StackCube-v1", "pd_joint_delta_pos", "train", 0)  # files as before
+    assert _generation_key("StackCube-v1", "pd_joint_delta_pos", "train", 0, ArmNoise(0.1), 2)["close_hold"] == 2
+    with pytest.raises(SystemExit, match="--close-hold must be >= 1"):
+        make_demos(ManiSkillDemos(close_hold=0))

@@ -43,6 +43,26 @@ PLAN_CONTROL_MODE = "pd_joint_pos"
 PLAN_STEP_LIMIT = 1000  # no time limit interferes with planning or conversion (planner demos are ~100-300 steps)
 
 
+def shorten_close_holds(plan_actions: np.ndarray, keep: int) -> np.ndarray:
+    """The planner's actions with each hold after a gripper close cut to its first ``keep`` steps.
+
+    ManiSkill3's planner closes the gripper by repeating one action (arm target fixed, gripper closed) for 6
+    steps; the fingers reach the object in ~2 of them, so the rest is a pause in which the state no longer
+    changes and only a step counter says when the lift starts. Cut short, the arm moves on as soon as the
+    fingers have closed: a pause the state shows. The actions are re-executed (converted) afterwards, so the
+    demos stay physically consistent, and only those that still succeed are kept."""
+    if keep < 1:
+        raise ValueError(f"keep must be >= 1, got {keep}")
+    gripper = plan_actions[:, -1]
+    drop = np.zeros(len(plan_actions), dtype=bool)
+    for start in np.flatnonzero(np.diff(gripper) < 0) + 1:  # the first step of each close
+        end = start + 1
+        while end < len(plan_actions) and np.array_equal(plan_actions[end], plan_actions[start]):
+            end += 1
+        drop[start + keep:end] = True
+    return plan_actions[~drop]
+
+
 def planner_solutions() -> dict:
     """ManiSkill3's motion-planning solutions, by env id."""
     from mani_skill.examples.motionplanning.panda.run import MP_SOLUTIONS  # the optional [maniskill] extra
@@ -124,11 +144,11 @@ class Recorder(gym.Wrapper):
 class _Worker:
     """One process's environments (built once): planner env, original-mode env and target env for conversion."""
 
-    def __init__(self, env_id: str, control_mode: str, noise: ArmNoise = ArmNoise()):
+    def __init__(self, env_id: str, control_mode: str, noise: ArmNoise = ArmNoise(), close_hold: int | None = None):
         solutions = planner_solutions()
         if env_id not in solutions:
             raise ValueError(f"ManiSkill3 has no motion-planning solution for {env_id}; choose from {sorted(solutions)}")
-        self.env_id, self.control_mode = env_id, control_mode
+        self.env_id, self.control_mode, self.close_hold = env_id, control_mode, close_hold
         self.solve = solutions[env_id]
         self.plan_env = Recorder(make_env(env_id, PLAN_CONTROL_MODE, obs_mode="none", max_episode_steps=PLAN_STEP_LIMIT), False)
         self.ori_env = make_env(env_id, PLAN_CONTROL_MODE, obs_mode="none", max_episode_steps=PLAN_STEP_LIMIT)
@@ -156,6 +176,8 @@ class _Worker:
         if not plan_ok:
             return {"seed": seed, "ok": False, "reason": "planner failed", "plan_s": t1 - t0}
         plan_actions = np.stack(self.plan_env.actions)
+        if self.close_hold is not None:
+            plan_actions = shorten_close_holds(plan_actions, self.close_hold)
         self.ori_env.reset(seed=seed)
         self.env.reset(seed=seed)
         try:
@@ -205,10 +227,11 @@ def _cpu(x):
 _WORKER: _Worker | None = None
 
 
-def _init_worker(env_id: str, control_mode: str, threads: int = 1, noise: ArmNoise = ArmNoise()) -> None:
+def _init_worker(env_id: str, control_mode: str, threads: int = 1, noise: ArmNoise = ArmNoise(),
+                 close_hold: int | None = None) -> None:
     global _WORKER
     torch.set_num_threads(threads)
-    _WORKER = _Worker(env_id, control_mode, noise)
+    _WORKER = _Worker(env_id, control_mode, noise, close_hold)
 
 
 def _run_seed(seed: int) -> dict[str, Any]:
@@ -216,9 +239,12 @@ def _run_seed(seed: int) -> dict[str, Any]:
     return _WORKER.run(seed)
 
 
-def _generation_key(env_id: str, control_mode: str, split: str, offset: int, noise: ArmNoise = ArmNoise()) -> dict:
+def _generation_key(env_id: str, control_mode: str, split: str, offset: int, noise: ArmNoise = ArmNoise(),
+                    close_hold: int | None = None) -> dict:
+    """What a demo file was generated with (a resumed file must match); options left at their defaults are
+    absent, so files made before an option existed resume as before."""
     return {"env_id": env_id, "control_mode": control_mode, "split": split, "offset": offset,
-            **noise.generation_key()}
+            **noise.generation_key(), **({"close_hold": close_hold} if close_hold is not None else {})}
 
 
 def _load_progress(paths: list[Path], key: dict) -> tuple[list[Episode], dict] | None:
@@ -263,7 +289,9 @@ def _trajectory_set(episodes: list[Episode], env_id: str, control_mode: str, gen
         "source_type": "motionplanning",
         "source_desc": "ManiSkill3 official motion-planning solution (pd_joint_pos), converted with ManiSkill's "
         f"action conversion to {control_mode}; state observations (cotpc demos maniskill)"
-        + _noise_description(gen),
+        + _noise_description(gen)
+        + (f"; the arm held still {gen['close_hold']} steps after each gripper close (the planner's own: 6)"
+           if gen.get("close_hold") is not None else ""),
         "cotpc_generation": gen,
     }
     return TrajectorySet(episodes=episodes, env_info=env_info, meta=meta)
@@ -281,13 +309,14 @@ def generate_split(
     save_every: int = 25,
     progress: bool = True,
     noise: ArmNoise = ArmNoise(),
+    close_hold: int | None = None,
 ) -> Path:
     """Generate ``num`` successful demos of ``split`` into ``OUT/<split>.{h5,json}`` (resuming saved progress)."""
     if control_mode not in CONTROL_MODES:
         raise ValueError(f"control mode must be one of {CONTROL_MODES}, got {control_mode!r}")
     out = Path(out)
     final, partial = out / split, out / f"{split}-partial"
-    key = _generation_key(env_id, control_mode, split, offset, noise)
+    key = _generation_key(env_id, control_mode, split, offset, noise, close_hold)
     lo, hi = SEEDS.range(split)
     found = _load_progress([final, partial], key)
     episodes, failed, next_seed, stats = [], [], lo + offset, {"plan_s": 0.0, "convert_s": 0.0}
@@ -337,10 +366,10 @@ def generate_split(
     pool = None
     try:
         if procs <= 1:
-            _init_worker(env_id, control_mode, threads=1, noise=noise)
+            _init_worker(env_id, control_mode, threads=1, noise=noise, close_hold=close_hold)
         else:
             pool = mp.get_context("spawn").Pool(procs, initializer=_init_worker,
-                                               initargs=(env_id, control_mode, 1, noise))
+                                               initargs=(env_id, control_mode, 1, noise, close_hold))
         pending: collections.deque = collections.deque()
         seed_iter = iter(range(next_seed, hi))
         while len(episodes) < num:
@@ -385,7 +414,8 @@ def generate_split(
 
 def write_splits(env_id: str, out: Path, num: int, test: int, control_mode: str = "pd_joint_delta_pos",
                  procs: int = 1, offset: int = 0, max_attempts: int | None = None,
-                 progress: bool = True, val: int = 0, noise: ArmNoise = ArmNoise()) -> dict[str, Path]:
+                 progress: bool = True, val: int = 0, noise: ArmNoise = ArmNoise(),
+                 close_hold: int | None = None) -> dict[str, Path]:
     """``num`` training, ``val`` validation and ``test`` test demos of ``env_id`` (:func:`generate_split`),
     written to ``out/{train,val,test}.{h5,json}``; resumes or extends what is there. Returns the paths."""
     import_maniskill()
@@ -395,7 +425,7 @@ def write_splits(env_id: str, out: Path, num: int, test: int, control_mode: str 
         if n > 0:
             paths[split] = generate_split(env_id, split, n, out, control_mode=control_mode, procs=procs,
                                           offset=offset, max_attempts=max_attempts, progress=progress,
-                                          noise=noise)
+                                          noise=noise, close_hold=close_hold)
     print(f"generated in {time.perf_counter() - start:.1f} s")
     return paths
 
@@ -440,6 +470,10 @@ class ManiSkillDemos:
     """The std in place of --action-noise while the object is grasped (the task's first privileged key-state
     flag held after the previous step; tasks with key-state flags only): corrections where the object is carried
     and placed, while the grasp keeps --action-noise (0.2 everywhere spoils the grasp). Default: off."""
+    close_hold: Optional[int] = None
+    """Steps the arm holds still after the gripper is told to close (default: the planner's own, 6). The fingers
+    close in ~2 steps; the rest is a pause the state does not show, which policies fail to time
+    (docs/results/maniskill.md). With 2 the arm lifts as soon as the fingers have closed. Not the paper's demos."""
 
 
 def make_demos(cfg: ManiSkillDemos) -> dict[str, Path]:
@@ -454,6 +488,8 @@ def make_demos(cfg: ManiSkillDemos) -> dict[str, Path]:
         if not KEY_STATE_FLAGS.get(cfg.env):
             raise SystemExit(f"cotpc demos maniskill: --grasped-noise reads the grasp from key-state flags, which "
                              f"{cfg.env} does not have; tasks with them: {sorted(KEY_STATE_FLAGS)}")
+    if cfg.close_hold is not None and cfg.close_hold < 1:
+        raise SystemExit(f"cotpc demos maniskill: --close-hold must be >= 1 step, got {cfg.close_hold}")
     return write_splits(cfg.env, cfg.out, cfg.num, cfg.test, control_mode=cfg.control_mode, procs=cfg.procs,
                         offset=cfg.offset, max_attempts=cfg.max_attempts, progress=cfg.progress, val=cfg.val,
-                        noise=ArmNoise(cfg.action_noise, cfg.grasped_noise))
+                        noise=ArmNoise(cfg.action_noise, cfg.grasped_noise), close_hold=cfg.close_hold)
