@@ -217,12 +217,16 @@ def summarise(episodes: list[dict]) -> dict:
 def teacher_forced(run: str, demos: Path, episodes: int) -> dict:
     """The policy's gripper decisions on the validation demos' own states and past actions (no simulation): at
     the step each demo closes the gripper, at the step it opens it, and how many of the steps between (holding)
-    or before (approaching) it gets wrong per demo; and the mean absolute error of its arm actions."""
+    or before (approaching) it gets wrong per demo, and where the wrong ones are: within ``near`` steps before
+    the close or the release, or in the middle of the hold (more than ``near`` steps from both); and the mean
+    absolute error of its arm actions."""
+    near = 10
     from cotpc.policies import load_policy
 
     policy = load_policy(run)
     _, _, act_mean, act_std = policy._np_stats
     close_wrong, release_wrong, hold_open, approach_closed, arm_err = [], [], [], [], []
+    wrong_where = {"before_close": 0, "mid_hold": 0, "before_release": 0, "elsewhere": 0}
     for ep in load_trajectories(demos / "val.h5", extras=()).episodes[:episodes]:
         policy.reset()
         predicted = []
@@ -237,11 +241,17 @@ def teacher_forced(run: str, demos: Path, episodes: int) -> dict:
         hold_open.append(int((grip[close + 1:release] == 1).sum()))
         approach_closed.append(int((grip[:close] == -1).sum()))
         arm_err.append(float(np.abs(predicted[:, :-1] - ep.actions[:, :-1]).mean()))
+        for t in np.flatnonzero(grip != want):
+            where = ("before_close" if close - near <= t <= close else
+                     "before_release" if release - near <= t <= release else
+                     "mid_hold" if close < t < release - near else "elsewhere")
+            wrong_where[where] += 1
     return {"episodes": len(close_wrong), "close_step_wrong": float(np.mean(close_wrong)),
             "release_step_wrong": float(np.mean(release_wrong)),
             "holding_steps_predicted_open_per_demo": float(np.mean(hold_open)),
             "approach_steps_predicted_closed_per_demo": float(np.mean(approach_closed)),
-            "arm_abs_error": float(np.mean(arm_err))}
+            "arm_abs_error": float(np.mean(arm_err)),
+            f"wrong_gripper_steps_where (near = {near} steps)": wrong_where}
 
 
 def main() -> None:
