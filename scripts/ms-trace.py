@@ -270,6 +270,9 @@ def main() -> None:
     p.add_argument("--clip-obs", default="none",
                    help="none; 'range' (each dimension clipped to the training demos' min-max); or a number z "
                         "(clipped to mean +- z std of the training demos)")
+    p.add_argument("--zero-obs", default="",
+                   help="comma-separated observation dimensions the policy is shown as 0 (e.g. 16,17: Stack Cube's "
+                        "finger joint velocities)")
     p.add_argument("--gripper-debounce", type=int, default=1,
                    help="switch the gripper command only after this many steps asking for it in a row (1 = off)")
     args = p.parse_args()
@@ -295,6 +298,14 @@ def main() -> None:
         else:
             z = float(args.clip_obs)
             clip = (train.mean(0) - z * train.std(0), train.mean(0) + z * train.std(0))
+    if args.zero_obs:
+        dims = [int(d) for d in args.zero_obs.split(",")]
+        obs_dim = data.episodes[0].obs.shape[1]
+        lo, hi = np.full(obs_dim, -np.inf, np.float32), np.full(obs_dim, np.inf, np.float32)
+        if clip is not None:
+            lo, hi = np.asarray(clip[0], np.float32).copy(), np.asarray(clip[1], np.float32).copy()
+        lo[dims] = hi[dims] = 0.0
+        clip = (lo, hi)
     make_probed = functools.partial(_wrapped_policy, make_policy, clip, args.timestep_shift,
                                     args.gripper_debounce)
     with mp.get_context("spawn").Pool(args.procs, initializer=rollout._init_worker,

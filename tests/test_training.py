@@ -169,6 +169,32 @@ def test_sampling_option_is_checked_and_kept_on_resume(data, tmp_path, field, ba
         train(TrainConfig(data=data, out=tmp_path / "run", iters=8, resume=True, **TINY))
 
 
+@pytest.mark.parametrize("policy", ["bet", "cotpc", "bc"])  # deterministic policies: equal actions say it all
+def test_ignored_observation_dimensions_never_reach_the_policy(data, tmp_path, policy):
+    run = train(TrainConfig(data=data, policy=policy, out=tmp_path / "run", iters=4, ignore_obs=(1, 4), **TINY))
+    std = load_file(str(run / "model.safetensors"))["norm.obs_std"]
+    assert torch.isinf(std[[1, 4]]).all() and torch.isfinite(std[[0, 2, 3, 5]]).all()
+    obs = np.random.default_rng(0).normal(size=(3, 6)).astype(np.float32)
+    changed = obs.copy()
+    changed[:, [1, 4]] += 100.0  # whatever the hidden dimensions hold, the actions are the same
+    for n in range(3):  # over a growing context
+        pol_a, pol_b = load_policy(run), load_policy(run)
+        for t in range(n + 1):
+            a, b = pol_a.select_action(obs), pol_b.select_action(changed)
+        assert np.allclose(a, b, atol=1e-6), (n, a, b)
+    changed[:, 0] += 100.0  # a dimension it does see changes them
+    pol_a, pol_b = load_policy(run), load_policy(run)
+    assert not np.allclose(pol_a.select_action(obs), pol_b.select_action(changed))
+
+
+def test_ignored_observation_dimensions_are_checked_and_kept_on_resume(data, tmp_path):
+    with pytest.raises(ValueError, match="--ignore-obs 6: .* 6-dim observations"):
+        train(TrainConfig(data=data, out=tmp_path / "bad", iters=2, ignore_obs=(6,), **TINY))
+    train(TrainConfig(data=data, out=tmp_path / "run", iters=4, ignore_obs=(2,), **TINY))
+    with pytest.raises(CheckpointError, match="--ignore-obs"):
+        train(TrainConfig(data=data, out=tmp_path / "run", iters=8, resume=True, **TINY))
+
+
 def test_kept_checkpoints_hold_their_own_step(data, tmp_path):
     """--keep-checkpoints links the files just written; later checkpoints must not change the earlier ones."""
     run = train(TrainConfig(data=data, out=tmp_path / "run", iters=12, ckpt_every=4, keep_checkpoints=True, **TINY))

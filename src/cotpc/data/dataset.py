@@ -43,6 +43,16 @@ class Stats:
 
         return Stats(*mean_std(obs), *mean_std(actions))
 
+    def ignoring(self, obs_dims) -> "Stats":
+        """These statistics with the observation dimensions ``obs_dims`` normalised to 0 whatever their value (mean
+        0, std infinity): every path that normalises with them (training windows, CoT targets, validation, the
+        saved policy at inference) then hides those dimensions from the model."""
+        if not len(obs_dims):
+            return self
+        mean, std = self.obs_mean.clone(), self.obs_std.clone()
+        mean[list(obs_dims)], std[list(obs_dims)] = 0.0, float("inf")
+        return Stats(mean, std, self.act_mean, self.act_std)
+
 
 def split_episodes(n: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Seeded split of episode indices into (train, val); val gets round(n * fraction) (>= 1 if fraction > 0

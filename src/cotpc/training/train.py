@@ -100,6 +100,11 @@ class TrainConfig:
     state_noise: float = 0.0
     """Std of Gaussian noise added to the normalised input states of every training window (0 = off; targets stay
     clean): a regulariser against memorising the training configurations through the history."""
+    ignore_obs: tuple[int, ...] = ()
+    """Observation dimensions (0-based) the policy never sees: normalised to 0 in training, validation and at
+    inference alike (their std is stored as infinity in the checkpoint's statistics). For Stack Cube, 16 17 are
+    the two finger-joint velocities, which make a finger bouncing off the cube look like a release
+    (docs/results/maniskill.md). Default: none."""
     boundary_weight: float = 1.0
     """Sample training windows that end within --boundary-radius steps of a boundary between two subskills (from
     `cotpc segment`) this many times as often as the others (1 = uniform, as the paper)."""
@@ -186,7 +191,7 @@ PROTOCOL_CHECKPOINTS = 20
 # The TrainConfig fields that decide how training windows are drawn and which kernels compute the step: a resumed
 # run must use the same ones to continue bit for bit (a training state saved before a field existed was trained
 # with the field's default).
-RESUME_MUST_MATCH = ("state_noise", "boundary_weight", "boundary_radius", "compile", "ema_decay")
+RESUME_MUST_MATCH = ("state_noise", "boundary_weight", "boundary_radius", "compile", "ema_decay", "ignore_obs")
 
 
 class SettingsError(ValueError):
@@ -439,7 +444,11 @@ def _train(config: TrainConfig) -> Path:
         raise SettingsError(f"{config.data}: {cfg.n_kmeans_centres} k-means centres need at least as many training "
                             f"actions; its {len(train_eps)} training episodes hold {len(act_all)}: pass "
                             f"--n-centres {min(128, len(act_all))} or fewer, or more demos")
-    stats = Stats.of(obs_all, act_all)
+    bad = [d for d in config.ignore_obs if not 0 <= d < trajs.obs_dim]
+    if bad:
+        raise SettingsError(f"--ignore-obs {' '.join(map(str, bad))}: {config.data} has {trajs.obs_dim}-dim "
+                            f"observations (dimensions 0..{trajs.obs_dim - 1})")
+    stats = Stats.of(obs_all, act_all).ignoring(config.ignore_obs)
     where = str(config.data)
     fut = cfg.future_actions  # action chunks (Diffusion Policy); 0 for the other families
     fut_s = cfg.future_states  # planned states (Decision Diffuser); 0 for the other families
