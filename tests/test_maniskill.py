@@ -273,9 +273,11 @@ def test_reproduce_flags_reach_every_run():
         return tyro.cli(ManiSkillReproduce, args=argv)
 
     train = study_settings(parse(["--context", "60", "--bf16", "False", "--batch-size", "64",
-                                  "--use-actions", "False"])).train
+                                  "--use-actions", "False", "--ignore-obs", "16", "17"])).train
     assert (train.context, train.bf16, train.batch_size, train.use_actions) == (60, False, 64, False)
+    assert train.ignore_obs == (16, 17)
     default = study_settings(parse([])).train
+    assert default.ignore_obs == ()  # default: every dimension, as the paper
     assert default.bf16 is None  # default: each run races the two precisions
     assert default.use_actions is None  # default: the preset's (action tokens, as the paper)
 

@@ -402,6 +402,10 @@ class ManiSkillReproduce:
     use_actions: Optional[bool] = None
     """Feed past actions to the transformer policies (default: the presets', True, as the paper); False
     conditions them on the states alone (`cotpc train --use-actions`; docs/results/maniskill.md, states only)."""
+    ignore_obs: tuple[int, ...] = ()
+    """Observation dimensions the policies never see (`cotpc train --ignore-obs`; e.g. 16 17, the Panda's finger
+    velocities, which make a finger bouncing off the object look like a release: docs/results/maniskill.md).
+    Default: none, as the paper."""
     num: Optional[int] = None
     """Training demos per task (default: the paper's, 500 Stack Cube and 1000 Peg Insertion)."""
     test: int = 100
@@ -452,7 +456,7 @@ def study_settings(cfg: ManiSkillReproduce) -> ManiSkillStudySettings:
         train=TrainConfig(data=cfg.out / "<task>" / "demos" / "train.h5", iters=cfg.iters, device=cfg.device,
                           batch_size=cfg.batch_size, context=cfg.context, n_centres=cfg.n_centres,
                           use_actions=cfg.use_actions, keep_checkpoints=cfg.keep_checkpoints, compile=cfg.compile,
-                          bf16=cfg.bf16),
+                          bf16=cfg.bf16, ignore_obs=tuple(cfg.ignore_obs)),
     )
 
 
