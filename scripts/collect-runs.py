@@ -6,7 +6,8 @@
 For each ``ROOT/P/seedS`` run it reads what `cotpc eval` and `scripts/ms-trace.py` wrote there: the validation
 curve (``checkpoints/step_N/eval_val.json`` of every kept checkpoint that was scored, and the final weights'
 ``eval_val.json`` under the run's last iteration), ``eval_unseen.json``, ``eval_seen.json`` and
-``trace_val.json``, and the unseen scores of kept checkpoints (``checkpoints/step_N/eval_unseen.json``, the
+``trace_val.json`` (and ``trace_val_*.json``, traces under inference-time probes such as ``--zero-obs``, under
+``other_traces``), and the unseen scores of kept checkpoints (``checkpoints/step_N/eval_unseen.json``, the
 weights chosen on the validation curve); whatever is missing is left out (a run still training, a split not yet scored). Any other
 ``eval_*.json`` of the run or its checkpoints (an evaluation with other inference settings, written with
 ``cotpc eval --out``, e.g. ``--action-horizon 1``) goes under ``other_evals``, keyed by its path in the run
@@ -58,6 +59,9 @@ def collect_run(run: Path) -> dict:
     trace = summary(run / "trace_val.json")
     if trace is not None:
         row["trace_val"] = trace
+    probes = {f.stem: summary(f) for f in sorted(run.glob("trace_val_*.json"))}  # ms-trace with inference probes
+    if probes:
+        row["other_traces"] = probes
     return row
 
 
