@@ -178,6 +178,7 @@ def finished(run_dir: Path, wanted: TrainConfig) -> bool:
     diff = {}
     for f in dataclasses.fields(TrainConfig):
         now, was = getattr(wanted, f.name), saved.get(f.name, _DEFAULTS.get(f.name))  # (keys older runs lack)
+        now, was = (list(x) if isinstance(x, tuple) else x for x in (now, was))  # config.json holds tuples as lists
         if f.name not in ignore and was != now:
             diff[f.name] = (was, now)
     if "policy" in info:  # the preset's design (a preset name can change meaning)
