@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from cotpc.envs.maniskill import demos as demos_module
-from cotpc.envs.maniskill.demos import ArmNoise, ManiSkillDemos, Recorder, _generation_key, make_demos
+from cotpc.envs.maniskill.demos import Demonstrator, ManiSkillDemos, Recorder, _generation_key, make_demos
 
 
 class Spy(gym.Env):
@@ -28,7 +28,7 @@ class Spy(gym.Env):
 
 
 def record(noise: float, seed: int, actions):
-    rec = Recorder(Spy(), record_obs=True, noise=ArmNoise(noise))
+    rec = Recorder(Spy(), record_obs=True, demonstrator=Demonstrator(noise))
     rec.reset(seed=seed)
     for a in actions:
         rec.step(a)
@@ -52,7 +52,7 @@ def test_noisy_arm_clean_record(as_tensor):
 
 def test_noise_is_part_of_the_generation_key_and_checked():
     assert "action_noise" not in _generation_key("StackCube-v1", "pd_joint_delta_pos", "train", 0)  # files as before
-    assert _generation_key("StackCube-v1", "pd_joint_delta_pos", "train", 0, ArmNoise(0.1))["action_noise"] == 0.1
+    assert _generation_key("StackCube-v1", "pd_joint_delta_pos", "train", 0, Demonstrator(0.1))["action_noise"] == 0.1
     with pytest.raises(SystemExit, match="--action-noise must be a std >= 0"):
         make_demos(ManiSkillDemos(action_noise=-0.1))
 
@@ -68,7 +68,7 @@ class Holding(Spy):
 
 def test_grasped_noise_only_while_grasped(monkeypatch):
     monkeypatch.setitem(demos_module.KEY_STATE_FLAGS, "Holding-v0", ("is_grasped",))
-    rec = Recorder(Holding(), record_obs=True, key_flags_of="Holding-v0", noise=ArmNoise(0.0, 0.3))
+    rec = Recorder(Holding(), record_obs=True, key_flags_of="Holding-v0", demonstrator=Demonstrator(0.0, 0.3))
     rec.reset(seed=5)
     clean = np.tile(np.array([0.0, 0.0, 0.0, 1.0], np.float32), (45, 1))
     for a in clean:
@@ -79,7 +79,7 @@ def test_grasped_noise_only_while_grasped(monkeypatch):
     assert (noise[10:30] != 0).all() and 0.15 < noise[10:30].std() < 0.45
     assert np.array_equal(np.stack(rec.actions), clean)  # the clean actions are what is recorded
     # with grasped_noise left out, the noise (and its random draws) are exactly --action-noise's
-    plain = Recorder(Holding(), record_obs=True, key_flags_of="Holding-v0", noise=ArmNoise(0.1))
+    plain = Recorder(Holding(), record_obs=True, key_flags_of="Holding-v0", demonstrator=Demonstrator(0.1))
     plain.reset(seed=5)
     for a in clean:
         plain.step(a)
@@ -88,10 +88,10 @@ def test_grasped_noise_only_while_grasped(monkeypatch):
 
 def test_grasped_noise_is_checked_and_keyed():
     with pytest.raises(ValueError, match="needs key_flags_of"):
-        Recorder(Spy(), record_obs=True, noise=ArmNoise(grasped=0.2))
-    key = _generation_key("StackCube-v1", "pd_joint_delta_pos", "train", 0, ArmNoise(0.1, 0.0))
+        Recorder(Spy(), record_obs=True, demonstrator=Demonstrator(grasped_noise=0.2))
+    key = _generation_key("StackCube-v1", "pd_joint_delta_pos", "train", 0, Demonstrator(0.1, 0.0))
     assert key["grasped_noise"] == 0.0 and key["action_noise"] == 0.1  # 0 while grasped is a setting, not "off"
-    assert "grasped_noise" not in _generation_key("StackCube-v1", "pd_joint_delta_pos", "train", 0, ArmNoise(0.1))
+    assert "grasped_noise" not in _generation_key("StackCube-v1", "pd_joint_delta_pos", "train", 0, Demonstrator(0.1))
     with pytest.raises(SystemExit, match="--grasped-noise must be a std >= 0"):
         make_demos(ManiSkillDemos(grasped_noise=float("nan")))
     with pytest.raises(SystemExit, match="does not have"):
@@ -115,6 +115,18 @@ def test_close_holds_are_cut_to_the_steps_asked_for():
 
 def test_close_hold_is_part_of_the_generation_key_and_checked():
     assert "close_hold" not in _generation_key("StackCube-v1", "pd_joint_delta_pos", "train", 0)  # files as before
-    assert _generation_key("StackCube-v1", "pd_joint_delta_pos", "train", 0, ArmNoise(0.1), 2)["close_hold"] == 2
+    assert _generation_key("StackCube-v1", "pd_joint_delta_pos", "train", 0, Demonstrator(0.1, close_hold=2))["close_hold"] == 2
     with pytest.raises(SystemExit, match="--close-hold must be >= 1"):
         make_demos(ManiSkillDemos(close_hold=0))
+
+
+def test_only_the_training_demos_are_altered(monkeypatch, tmp_path):
+    """The validation and test splits are the planner's own for any demonstrator: their seeds are the evaluation
+    sets, which must not depend on how the training demos were made."""
+    made = {}
+    monkeypatch.setattr(demos_module, "import_maniskill", lambda: None)
+    monkeypatch.setattr(demos_module, "generate_split",
+                        lambda env_id, split, n, out, demonstrator, **kw: made.setdefault(split, demonstrator))
+    make_demos(ManiSkillDemos(out=tmp_path, num=3, val=2, test=2, action_noise=0.1, close_hold=2))
+    assert made["train"] == Demonstrator(0.1, close_hold=2)
+    assert made["val"] == made["test"] == Demonstrator()  # the planner's own

@@ -282,13 +282,37 @@ def test_reproduce_flags_reach_every_run():
     assert default.use_actions is None  # default: the preset's (action tokens, as the paper)
 
 
+def test_reproduce_action_noise_makes_dart_training_demos(monkeypatch, tmp_path):
+    import tyro
+
+    from cotpc.envs.maniskill.demos import Demonstrator
+    from cotpc.studies import maniskill as study
+
+    asked = {}
+
+    def fake_write_splits(env_id, demos, num, test, demonstrator, **kw):
+        asked[env_id] = demonstrator
+        raise KeyboardInterrupt  # stop before any training
+
+    monkeypatch.setattr(study, "write_splits", fake_write_splits)
+    monkeypatch.setattr(study, "import_maniskill", lambda: None)
+    for argv, expected in ((["--action-noise", "0.1"], Demonstrator(0.1)), ([], Demonstrator())):
+        settings = study.study_settings(tyro.cli(study.ManiSkillReproduce, args=["--out", str(tmp_path), *argv]))
+        with pytest.raises(KeyboardInterrupt):
+            study.run(settings)
+        assert asked["StackCube-v1"] == expected
+    bad = study.study_settings(study.ManiSkillReproduce(out=tmp_path, action_noise=-1.0))
+    with pytest.raises(SystemExit, match="cotpc reproduce maniskill: --action-noise must be a std >= 0"):
+        study.run(bad)
+
+
 def test_maniskill_report_for_a_task_without_stage_flags(tmp_path):
     from cotpc.studies.maniskill import PAPER, write_report
 
     stats = {"mean": 0.0, "std": 0.0, "best": 0.0, "runs": [0.0]}
     split = {**stats, "success_at_end": stats, "stages_once": {}, "max_normalized_reward": 0.25}
-    meta = {"settings": {"seeds": 1, "control_mode": "pd_joint_delta_pos",
-                         "train": {"iters": 2, "batch_size": None, "n_centres": None}},
+    meta = {"settings": {"seeds": 1, "control_mode": "pd_joint_delta_pos", "action_noise": 0.1,
+                         "train": {"iters": 2, "batch_size": None, "n_centres": None, "ignore_obs": [16, 17]}},
             "checkpoint_selection": "final", "wall_seconds": 1.0, "demos": {"PegInsertionSide-v1": 3},
             "horizons": {"PegInsertionSide-v1": 200}, "subskills": {}, "train_seconds": {}, "paper": PAPER,
             "hardware": {"cpus": 2, "machine": "x86_64"},
@@ -297,3 +321,4 @@ def test_maniskill_report_for_a_task_without_stage_flags(tmp_path):
                           tmp_path).read_text()
     assert "| policy | max normalised reward |\n|---|---|\n| bet | 0.250 |" in report
     assert "| bet | 0.0 ± 0.0 [0.0] |" in report and "| 42.5 |" in report
+    assert "state observations without dimensions 16, 17; training demos DART-style (arm noise 0.1)." in report

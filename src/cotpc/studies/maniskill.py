@@ -20,7 +20,7 @@ from typing import Literal, Optional
 import numpy as np
 import torch
 
-from cotpc.envs.maniskill.demos import ManiSkillDemos, make_demos, write_splits
+from cotpc.envs.maniskill.demos import ManiSkillDemos, checked_demonstrator, make_demos, write_splits
 from cotpc.envs.maniskill.env import HORIZONS, import_maniskill, is_maniskill_env
 from cotpc.envs.spec import GENERIC, env_spec, task_defaults
 from cotpc.envs.maniskill.rollout import evaluate, evaluate_run, policy_loader
@@ -62,9 +62,11 @@ class ManiSkillStudySettings:
     beta: float | None = None  # None: the paper's single-arm beta
     procs: int = 2
     backend: str = "auto"
+    action_noise: float = 0.0  # DART-style noise on the training demos' executed arm actions (0: the planner's)
 
 
 def run(s: ManiSkillStudySettings) -> dict:
+    demonstrator = checked_demonstrator("cotpc reproduce maniskill", s.action_noise)  # flags first
     import_maniskill()
     unknown = [e for e in s.envs if e not in HORIZONS]
     if unknown:
@@ -82,9 +84,11 @@ def run(s: ManiSkillStudySettings) -> dict:
         task = out / env_id
         demos = task / "demos"
         num = demo_counts[env_id]
-        print(f"[1/4] {env_id}: {num} train + {s.val} val + {s.test} test planner demos -> {demos}", flush=True)
+        dart = f" (training demos DART-style, arm noise {s.action_noise})" if s.action_noise else ""
+        print(f"[1/4] {env_id}: {num} train + {s.val} val + {s.test} test planner demos{dart} -> {demos}", flush=True)
         write_splits(env_id, demos, num, s.test, control_mode=s.control_mode, procs=s.procs,
-                     progress=sys.stderr.isatty(), val=s.val)
+                     progress=sys.stderr.isatty(), val=s.val,
+                     demonstrator=demonstrator)
         defaults = task_defaults(env_id)  # the paper's single-arm setting
         beta, cost = (defaults.beta if s.beta is None else s.beta), defaults.cost
         print(f"[2/4] {env_id}: subskill discovery, {cost} cost, beta={beta}", flush=True)
@@ -279,7 +283,10 @@ def write_report(results: dict, out: Path) -> Path:
         f"{extra['iters']} training iterations per run at batch {extra.get('batch_size') or 'default (256; bc 32)'}, "
         f"context {extra.get('context') or 'default (10)'}, "
         f"{extra.get('n_centres') or f'default ({GENERIC.n_centres})'} k-means centres, {s['seeds']} seed(s) per policy, "
-        f"{s['control_mode']} actions, state observations. Checkpoints: {meta['checkpoint_selection']}.  ",
+        f"{s['control_mode']} actions, state observations"
+        + (f" without dimensions {', '.join(map(str, extra['ignore_obs']))}" if extra.get("ignore_obs") else "")
+        + (f"; training demos DART-style (arm noise {s['action_noise']})" if s.get("action_noise") else "")
+        + f". Checkpoints: {meta['checkpoint_selection']}.  ",
         f"This invocation {meta['wall_seconds'] / 60:.1f} min on {describe_hardware(meta['hardware'])}; "
         f"torch {meta['versions']['torch']}, mani-skill {meta['versions']['mani_skill']}, "
         f"sapien {meta['versions']['sapien']}.",
@@ -408,6 +415,10 @@ class ManiSkillReproduce:
     Default: none, as the paper."""
     num: Optional[int] = None
     """Training demos per task (default: the paper's, 500 Stack Cube and 1000 Peg Insertion)."""
+    action_noise: float = 0.0
+    """DART-style training demos (`cotpc demos maniskill --action-noise`): the arm actions executed with Gaussian
+    noise of this std (normalised units), the planner's corrections recorded; 0.1 is what the results in
+    docs/results/maniskill.md use. The validation and test demos stay the planner's own. Default: off, as the paper."""
     test: int = 100
     """Test demos per task: their seeds are the unseen evaluation set."""
     val: int = 100
@@ -453,6 +464,7 @@ def study_settings(cfg: ManiSkillReproduce) -> ManiSkillStudySettings:
         curve_episodes=cfg.curve_episodes or None, curve_every=cfg.curve_every, paper_protocol=cfg.paper_protocol,
         jobs=cfg.jobs,
         control_mode=cfg.control_mode, horizon=cfg.horizon, procs=cfg.procs, backend=cfg.backend,
+        action_noise=cfg.action_noise,
         train=TrainConfig(data=cfg.out / "<task>" / "demos" / "train.h5", iters=cfg.iters, device=cfg.device,
                           batch_size=cfg.batch_size, context=cfg.context, n_centres=cfg.n_centres,
                           use_actions=cfg.use_actions, keep_checkpoints=cfg.keep_checkpoints, compile=cfg.compile,

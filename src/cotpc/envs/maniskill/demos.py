@@ -71,42 +71,69 @@ def planner_solutions() -> dict:
 
 
 @dataclass(frozen=True)
-class ArmNoise:
-    """DART-style noise on the executed arm actions (Laskey et al., 2017): Gaussian, of std ``action`` in
-    normalised action units (0 = clean demos), or ``grasped`` instead while the object is held (None = the same
-    std throughout). The recorded actions stay clean."""
+class Demonstrator:
+    """How the planner's training demos are altered (all off: the planner's own demos, as the paper's).
 
-    action: float = 0.0
-    grasped: float | None = None
+    ``action_noise``: DART-style noise on the executed arm actions (Laskey et al., 2017), Gaussian of this std in
+    normalised action units, the clean (corrective) actions recorded; ``grasped_noise``: that std instead while the
+    object is held (None = ``action_noise`` throughout); ``close_hold``: steps the arm holds still after each
+    gripper close (None = the planner's own 6, :func:`shorten_close_holds`)."""
 
-    def std(self, grasped_now: bool) -> float:
-        return self.grasped if self.grasped is not None and grasped_now else self.action
+    action_noise: float = 0.0
+    grasped_noise: float | None = None
+    close_hold: int | None = None
+
+    def __post_init__(self):
+        for name in ("action_noise", "grasped_noise"):
+            std = getattr(self, name)
+            if std is not None and not (np.isfinite(std) and std >= 0):
+                raise ValueError(f"--{name.replace('_', '-')} must be a std >= 0, got {std}")
+        if self.close_hold is not None and self.close_hold < 1:
+            raise ValueError(f"--close-hold must be >= 1 step, got {self.close_hold}")
+
+    def noise_std(self, grasped_now: bool) -> float:
+        return self.grasped_noise if self.grasped_noise is not None and grasped_now else self.action_noise
 
     def generation_key(self) -> dict:
-        """The entries a demo file's generation key holds: none for clean demos, so files made before the option
-        resume as before; a ``grasped`` of 0 is a setting, not "off"."""
-        key = {"action_noise": self.action} if self.action else {}
-        return key | ({"grasped_noise": self.grasped} if self.grasped is not None else {})
+        """The entries a demo file's generation key holds: none for the planner's own demos, so files made before
+        an option existed resume as before; a ``grasped_noise`` of 0 is a setting, not "off"."""
+        key = {"action_noise": self.action_noise} if self.action_noise else {}
+        key |= {"grasped_noise": self.grasped_noise} if self.grasped_noise is not None else {}
+        return key | ({"close_hold": self.close_hold} if self.close_hold is not None else {})
+
+    @staticmethod
+    def describe(gen: dict) -> str:
+        """How a file's demos were altered (from its generation key), for its source description; "" if not."""
+        text = ""
+        grasped = gen.get("grasped_noise")
+        if gen.get("action_noise") or grasped is not None:
+            while_grasped = f", {grasped} while the object is grasped" if grasped is not None else ""
+            text += (f"; arm actions executed with Gaussian noise of std {gen.get('action_noise', 0.0)} (normalised)"
+                     f"{while_grasped}, the clean (corrective) actions recorded")
+        if gen.get("close_hold") is not None:
+            text += f"; the arm held still {gen['close_hold']} steps after each gripper close (the planner's own: 6)"
+        return text
 
 
 class Recorder(gym.Wrapper):
     """Records the actions passed to step(), the flat observations, info['success'] and (with ``key_flags_of``,
     an env id) the task's privileged key-state flags since reset().
 
-    With ``noise`` (:class:`ArmNoise`) the arm part of each action (all but the last, the gripper's, dimension) is
+    With ``demonstrator`` noise (:class:`Demonstrator`) the arm part of each action (all but the last, the gripper's, dimension) is
     executed with Gaussian noise added (in normalised units, clipped to [-1, 1]) while the clean action is
     recorded, from a generator seeded by the episode's seed: DART-style demos (Laskey et al., 2017). The
     converter computes each joint-delta action from the *current* joint positions to the planner's next target,
-    so the recorded action after a noisy step is the correction back to the plan. ``noise.grasped`` (needs
+    so the recorded action after a noisy step is the correction back to the plan. ``grasped_noise`` (needs
     ``key_flags_of``) applies while the task's first key-state flag (the object grasped) held after the previous
     step: larger corrections where the object is carried, the grasp untouched."""
 
-    def __init__(self, env, record_obs: bool, key_flags_of: str | None = None, noise: ArmNoise = ArmNoise()):
+    def __init__(self, env, record_obs: bool, key_flags_of: str | None = None,
+                 demonstrator: Demonstrator = Demonstrator()):
         super().__init__(env)
-        if noise.grasped is not None and not KEY_STATE_FLAGS.get(key_flags_of or ""):
+        if demonstrator.grasped_noise is not None and not KEY_STATE_FLAGS.get(key_flags_of or ""):
             raise ValueError("noise while grasped needs key_flags_of, a task with key-state flags: the grasp is "
                              "read from the first of them")
-        self.record_obs, self.key_flags_of, self.noise = record_obs, key_flags_of, noise
+        self.record_obs, self.key_flags_of, self.demonstrator = record_obs, key_flags_of, demonstrator
         self.rng = np.random.default_rng(0)
 
     def reset(self, **kwargs):
@@ -128,7 +155,7 @@ class Recorder(gym.Wrapper):
         return noisy
 
     def step(self, action):
-        std = self.noise.std(grasped_now=bool(self.key_flags and self.key_flags[-1][0]))
+        std = self.demonstrator.noise_std(grasped_now=bool(self.key_flags and self.key_flags[-1][0]))
         executed = self._with_noise(action, std) if std > 0 else action
         obs, reward, terminated, truncated, info = self.env.step(executed)
         a = action.detach().cpu().numpy() if hasattr(action, "detach") else np.asarray(action)
@@ -144,16 +171,16 @@ class Recorder(gym.Wrapper):
 class _Worker:
     """One process's environments (built once): planner env, original-mode env and target env for conversion."""
 
-    def __init__(self, env_id: str, control_mode: str, noise: ArmNoise = ArmNoise(), close_hold: int | None = None):
+    def __init__(self, env_id: str, control_mode: str, demonstrator: Demonstrator = Demonstrator()):
         solutions = planner_solutions()
         if env_id not in solutions:
             raise ValueError(f"ManiSkill3 has no motion-planning solution for {env_id}; choose from {sorted(solutions)}")
-        self.env_id, self.control_mode, self.close_hold = env_id, control_mode, close_hold
+        self.env_id, self.control_mode, self.demonstrator = env_id, control_mode, demonstrator
         self.solve = solutions[env_id]
         self.plan_env = Recorder(make_env(env_id, PLAN_CONTROL_MODE, obs_mode="none", max_episode_steps=PLAN_STEP_LIMIT), False)
         self.ori_env = make_env(env_id, PLAN_CONTROL_MODE, obs_mode="none", max_episode_steps=PLAN_STEP_LIMIT)
         self.env = Recorder(make_env(env_id, control_mode, obs_mode="state", max_episode_steps=PLAN_STEP_LIMIT), True,
-                            key_flags_of=env_id, noise=noise)
+                            key_flags_of=env_id, demonstrator=demonstrator)
 
     def run(self, seed: int) -> dict[str, Any]:
         """Plan and convert one seed: a dict with ``ok`` and, when ok, obs/actions/success and timings."""
@@ -176,8 +203,8 @@ class _Worker:
         if not plan_ok:
             return {"seed": seed, "ok": False, "reason": "planner failed", "plan_s": t1 - t0}
         plan_actions = np.stack(self.plan_env.actions)
-        if self.close_hold is not None:
-            plan_actions = shorten_close_holds(plan_actions, self.close_hold)
+        if self.demonstrator.close_hold is not None:
+            plan_actions = shorten_close_holds(plan_actions, self.demonstrator.close_hold)
         self.ori_env.reset(seed=seed)
         self.env.reset(seed=seed)
         try:
@@ -227,11 +254,10 @@ def _cpu(x):
 _WORKER: _Worker | None = None
 
 
-def _init_worker(env_id: str, control_mode: str, threads: int = 1, noise: ArmNoise = ArmNoise(),
-                 close_hold: int | None = None) -> None:
+def _init_worker(env_id: str, control_mode: str, threads: int = 1, demonstrator: Demonstrator = Demonstrator()) -> None:
     global _WORKER
     torch.set_num_threads(threads)
-    _WORKER = _Worker(env_id, control_mode, noise, close_hold)
+    _WORKER = _Worker(env_id, control_mode, demonstrator)
 
 
 def _run_seed(seed: int) -> dict[str, Any]:
@@ -239,12 +265,12 @@ def _run_seed(seed: int) -> dict[str, Any]:
     return _WORKER.run(seed)
 
 
-def _generation_key(env_id: str, control_mode: str, split: str, offset: int, noise: ArmNoise = ArmNoise(),
-                    close_hold: int | None = None) -> dict:
+def _generation_key(env_id: str, control_mode: str, split: str, offset: int,
+                    demonstrator: Demonstrator = Demonstrator()) -> dict:
     """What a demo file was generated with (a resumed file must match); options left at their defaults are
     absent, so files made before an option existed resume as before."""
     return {"env_id": env_id, "control_mode": control_mode, "split": split, "offset": offset,
-            **noise.generation_key(), **({"close_hold": close_hold} if close_hold is not None else {})}
+            **demonstrator.generation_key()}
 
 
 def _load_progress(paths: list[Path], key: dict) -> tuple[list[Episode], dict] | None:
@@ -268,16 +294,6 @@ def _load_progress(paths: list[Path], key: dict) -> tuple[list[Episode], dict] |
     return best
 
 
-def _noise_description(gen: dict) -> str:
-    """How the arm actions were perturbed (DART-style), for the file's source description; "" for clean demos."""
-    grasped = gen.get("grasped_noise")
-    if not gen.get("action_noise") and grasped is None:
-        return ""
-    while_grasped = f", {grasped} while the object is grasped" if grasped is not None else ""
-    return (f"; arm actions executed with Gaussian noise of std {gen.get('action_noise', 0.0)} (normalised)"
-            f"{while_grasped}, the clean (corrective) actions recorded")
-
-
 def _trajectory_set(episodes: list[Episode], env_id: str, control_mode: str, gen: dict) -> TrajectorySet:
     env_info = {
         "env_id": env_id,
@@ -289,9 +305,7 @@ def _trajectory_set(episodes: list[Episode], env_id: str, control_mode: str, gen
         "source_type": "motionplanning",
         "source_desc": "ManiSkill3 official motion-planning solution (pd_joint_pos), converted with ManiSkill's "
         f"action conversion to {control_mode}; state observations (cotpc demos maniskill)"
-        + _noise_description(gen)
-        + (f"; the arm held still {gen['close_hold']} steps after each gripper close (the planner's own: 6)"
-           if gen.get("close_hold") is not None else ""),
+        + Demonstrator.describe(gen),
         "cotpc_generation": gen,
     }
     return TrajectorySet(episodes=episodes, env_info=env_info, meta=meta)
@@ -308,15 +322,14 @@ def generate_split(
     max_attempts: int | None = None,
     save_every: int = 25,
     progress: bool = True,
-    noise: ArmNoise = ArmNoise(),
-    close_hold: int | None = None,
+    demonstrator: Demonstrator = Demonstrator(),
 ) -> Path:
     """Generate ``num`` successful demos of ``split`` into ``OUT/<split>.{h5,json}`` (resuming saved progress)."""
     if control_mode not in CONTROL_MODES:
         raise ValueError(f"control mode must be one of {CONTROL_MODES}, got {control_mode!r}")
     out = Path(out)
     final, partial = out / split, out / f"{split}-partial"
-    key = _generation_key(env_id, control_mode, split, offset, noise, close_hold)
+    key = _generation_key(env_id, control_mode, split, offset, demonstrator)
     lo, hi = SEEDS.range(split)
     found = _load_progress([final, partial], key)
     episodes, failed, next_seed, stats = [], [], lo + offset, {"plan_s": 0.0, "convert_s": 0.0}
@@ -366,10 +379,10 @@ def generate_split(
     pool = None
     try:
         if procs <= 1:
-            _init_worker(env_id, control_mode, threads=1, noise=noise, close_hold=close_hold)
+            _init_worker(env_id, control_mode, threads=1, demonstrator=demonstrator)
         else:
             pool = mp.get_context("spawn").Pool(procs, initializer=_init_worker,
-                                               initargs=(env_id, control_mode, 1, noise, close_hold))
+                                               initargs=(env_id, control_mode, 1, demonstrator))
         pending: collections.deque = collections.deque()
         seed_iter = iter(range(next_seed, hi))
         while len(episodes) < num:
@@ -414,10 +427,12 @@ def generate_split(
 
 def write_splits(env_id: str, out: Path, num: int, test: int, control_mode: str = "pd_joint_delta_pos",
                  procs: int = 1, offset: int = 0, max_attempts: int | None = None,
-                 progress: bool = True, val: int = 0, noise: ArmNoise = ArmNoise(),
-                 close_hold: int | None = None) -> dict[str, Path]:
+                 progress: bool = True, val: int = 0, demonstrator: Demonstrator = Demonstrator()) -> dict[str, Path]:
     """``num`` training, ``val`` validation and ``test`` test demos of ``env_id`` (:func:`generate_split`),
-    written to ``out/{train,val,test}.{h5,json}``; resumes or extends what is there. Returns the paths."""
+    written to ``out/{train,val,test}.{h5,json}``; resumes or extends what is there. Returns the paths.
+
+    ``demonstrator`` alters the training demos only: the validation and test splits are the planner's own, so
+    their seeds (the evaluation sets: a seed whose demo fails is skipped) are the same for any demonstrator."""
     import_maniskill()
     start = time.perf_counter()
     paths = {}
@@ -425,7 +440,7 @@ def write_splits(env_id: str, out: Path, num: int, test: int, control_mode: str 
         if n > 0:
             paths[split] = generate_split(env_id, split, n, out, control_mode=control_mode, procs=procs,
                                           offset=offset, max_attempts=max_attempts, progress=progress,
-                                          noise=noise, close_hold=close_hold)
+                                          demonstrator=demonstrator if split == "train" else Demonstrator())
     print(f"generated in {time.perf_counter() - start:.1f} s")
     return paths
 
@@ -480,16 +495,21 @@ def make_demos(cfg: ManiSkillDemos) -> dict[str, Path]:
     """``cotpc demos maniskill`` (mani_skill is imported only when demos are made: an optional extra)."""
     check_demo_flags("cotpc demos maniskill", {"--num": cfg.num, "--val": cfg.val, "--test": cfg.test},
                      {"--procs": cfg.procs, "--max-attempts": cfg.max_attempts}, {"--offset": cfg.offset})
-    if not (np.isfinite(cfg.action_noise) and cfg.action_noise >= 0):
-        raise SystemExit(f"cotpc demos maniskill: --action-noise must be a std >= 0, got {cfg.action_noise}")
-    if cfg.grasped_noise is not None:
-        if not (np.isfinite(cfg.grasped_noise) and cfg.grasped_noise >= 0):
-            raise SystemExit(f"cotpc demos maniskill: --grasped-noise must be a std >= 0, got {cfg.grasped_noise}")
-        if not KEY_STATE_FLAGS.get(cfg.env):
-            raise SystemExit(f"cotpc demos maniskill: --grasped-noise reads the grasp from key-state flags, which "
-                             f"{cfg.env} does not have; tasks with them: {sorted(KEY_STATE_FLAGS)}")
-    if cfg.close_hold is not None and cfg.close_hold < 1:
-        raise SystemExit(f"cotpc demos maniskill: --close-hold must be >= 1 step, got {cfg.close_hold}")
+    demonstrator = checked_demonstrator("cotpc demos maniskill", cfg.action_noise, cfg.grasped_noise, cfg.close_hold,
+                                        env_id=cfg.env)
     return write_splits(cfg.env, cfg.out, cfg.num, cfg.test, control_mode=cfg.control_mode, procs=cfg.procs,
                         offset=cfg.offset, max_attempts=cfg.max_attempts, progress=cfg.progress, val=cfg.val,
-                        noise=ArmNoise(cfg.action_noise, cfg.grasped_noise), close_hold=cfg.close_hold)
+                        demonstrator=demonstrator)
+
+
+def checked_demonstrator(command: str, action_noise: float = 0.0, grasped_noise: float | None = None,
+                         close_hold: int | None = None, env_id: str | None = None) -> Demonstrator:
+    """The :class:`Demonstrator` of a command's flags (for ``env_id``), or a clear error naming the flag."""
+    try:
+        demonstrator = Demonstrator(action_noise, grasped_noise, close_hold)
+    except ValueError as e:
+        raise SystemExit(f"{command}: {e}") from None
+    if grasped_noise is not None and not KEY_STATE_FLAGS.get(env_id):
+        raise SystemExit(f"{command}: --grasped-noise reads the grasp from key-state flags, which {env_id} does not "
+                         f"have; tasks with them: {sorted(KEY_STATE_FLAGS)}")
+    return demonstrator
