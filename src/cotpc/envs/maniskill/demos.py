@@ -119,8 +119,8 @@ class Recorder(gym.Wrapper):
     """Records the actions passed to step(), the flat observations, info['success'] and (with ``key_flags_of``,
     an env id) the task's privileged key-state flags since reset().
 
-    With ``demonstrator`` noise (:class:`Demonstrator`) the arm part of each action (all but the last, the gripper's, dimension) is
-    executed with Gaussian noise added (in normalised units, clipped to [-1, 1]) while the clean action is
+    With a ``demonstrator``'s noise (:class:`Demonstrator`) the arm part of each action (all but the last, the
+    gripper's, dimension) is executed with Gaussian noise added (in normalised units, clipped to [-1, 1]) while the clean action is
     recorded, from a generator seeded by the episode's seed: DART-style demos (Laskey et al., 2017). The
     converter computes each joint-delta action from the *current* joint positions to the planner's next target,
     so the recorded action after a noisy step is the correction back to the plan. ``grasped_noise`` (needs
@@ -463,7 +463,8 @@ class ManiSkillDemos:
     """Number of (successful) training demos."""
     val: int = 0
     """Number of validation demos, from the disjoint validation seed range: choose schedules, settings and
-    checkpoints on these seeds, never on the test seeds."""
+    checkpoints on these seeds, never on the test seeds. Always the planner's own (the options below alter the
+    training demos only), so the evaluation seeds do not depend on them."""
     test: int = 100
     """Number of test demos, from the disjoint test seed range (their seeds are the 'unseen' evaluation set)."""
     control_mode: Literal["pd_joint_delta_pos", "pd_ee_delta_pose"] = "pd_joint_delta_pos"
