@@ -18,6 +18,7 @@ success). Validation seeds only (never the test seeds)::
         --out RUN/trace_val.json
     .venv-ms/bin/python scripts/ms-trace.py replay --demos runs/ms/StackCube-v1/demos --episodes 20
     .venv-ms/bin/python scripts/ms-trace.py RUN --demos ... --teacher-forced     # gripper decisions on the demos
+    .venv-ms/bin/python scripts/ms-trace.py RUN/trace_val.json                   # summarise a saved trace again
     .venv-ms/bin/python scripts/ms-trace.py RUN --demos ... --timestep-shift -15  # how far actions follow time
 
 The summary also has where the gripper was, relative to cube A, when first told to close (median distance,
@@ -158,7 +159,8 @@ def classify(rows: list[dict], start: np.ndarray | None = None) -> dict:
            "lifted": bool(any(r["grasped"] and r["a_height"] > 0.02 for r in rows)),
            "gripper_switches": int((np.diff(np.sign([r["gripper"] for r in rows])) != 0).sum()),
            "max_height_grasped": float(max((r["a_height"] for r in rows if r["grasped"]), default=0.0)),
-           "min_xy_to_b_grasped": float(min((r["xy_to_b"] for r in rows if r["grasped"]), default=np.inf))}
+           "min_xy_to_b_grasped": float(min((r["xy_to_b"] for r in rows if r["grasped"]), default=np.inf)),
+           **_first_release(rows)}
     if success.any():
         return {**out, "phase": "success"}
     if not grasped.any():
@@ -176,6 +178,16 @@ def classify(rows: list[dict], start: np.ndarray | None = None) -> dict:
     if not on_b.any():
         return {**out, "phase": "not placed"}
     return {**out, "phase": "not released", "first_on_b": first_on_b}
+
+
+def _first_release(rows: list[dict]) -> dict:
+    """Where cube A was when the grasp first ended with the cube raised (> 2 cm, so a release over cube B or a drop
+    in the air, never a slip at the table): its horizontal distance from cube B's centre and its height, in the
+    state the policy released in. A 4 cm cube let go > 2 cm off B's centre overhangs by half and rarely rests."""
+    for t in range(1, len(rows)):
+        if rows[t - 1]["grasped"] and not rows[t]["grasped"] and rows[t - 1]["a_height"] > 0.02:
+            return {"release_xy_to_b": rows[t - 1]["xy_to_b"], "release_height": rows[t - 1]["a_height"]}
+    return {"release_xy_to_b": None, "release_height": None}
 
 
 def _mean_mm(values: list) -> float | None:
@@ -203,6 +215,12 @@ def summarise(episodes: list[dict]) -> dict:
                "lifted_2cm": float(np.mean([e["lifted"] for e in episodes])),
                "mean_max_height_grasped": float(np.mean([e["max_height_grasped"] for e in episodes
                                                          if e["first_grasp"] is not None] or [np.nan]))}
+    released = [e["release_xy_to_b"] for e in episodes if e.get("release_xy_to_b") is not None]
+    if released:  # how precisely cube A is put over B (traces made before this was recorded have none)
+        summary["release_xy_to_b_mm"] = {
+            "released": len(released), "median": round(1000 * float(np.median(released)), 1),
+            "p75": round(1000 * float(np.percentile(released, 75)), 1),
+            "over_20mm": round(float(np.mean(np.array(released) > 0.02)), 3)}
     if drops:
         summary["dropped"] = {
             "gripper_command_at_loss": [round(e["loss_gripper"], 3) for e in drops],
@@ -256,8 +274,9 @@ def teacher_forced(run: str, demos: Path, episodes: int) -> dict:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("run", help="a run directory, or 'replay' for the validation demos' own actions")
-    p.add_argument("--demos", type=Path, required=True)
+    p.add_argument("run", help="a run directory, 'replay' for the validation demos' own actions, or a trace "
+                               "written by --out (its episodes are summarised again, nothing is run)")
+    p.add_argument("--demos", type=Path, help="the demo folder (its val.h5 seeds; train.h5 for --clip-obs)")
     p.add_argument("--episodes", type=int, default=50)
     p.add_argument("--horizon", type=int, default=200)
     p.add_argument("--procs", type=int, default=1)
@@ -276,6 +295,14 @@ def main() -> None:
     p.add_argument("--gripper-debounce", type=int, default=1,
                    help="switch the gripper command only after this many steps asking for it in a row (1 = off)")
     args = p.parse_args()
+    if args.run.endswith(".json"):
+        episodes = json.loads(Path(args.run).read_text())["episodes"]
+        for e in episodes:  # traces written before the release was recorded
+            e.update({k: v for k, v in _first_release(e["steps"]).items() if e.get(k) is None})
+        print(json.dumps(summarise(episodes), indent=1))
+        return
+    if args.demos is None:
+        raise SystemExit("ms-trace: --demos is needed to run rollouts")
     if args.run != "replay" and not (Path(args.run) / "config.json").exists():
         raise SystemExit(f"ms-trace: {args.run} is not a run directory (no config.json)")  # before any pool starts
     if args.teacher_forced:
