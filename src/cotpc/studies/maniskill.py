@@ -412,7 +412,7 @@ class ManiSkillReproduce:
     conditions them on the states alone (`cotpc train --use-actions`; docs/results/maniskill.md, states only)."""
     cot_weight: Optional[float] = None
     """Weight of the CoT loss for the CoT policies (default: the paper's 0.1; other policies have no CoT loss).
-    Stack Cube, finger velocities hidden: 1 did best of 0.1 / 1 / 3 on validation (seed 0; results/maniskill.md)."""
+    Stack Cube, finger velocities hidden: 1 was best on seed 0's validation, level with 0.1 over 3 seeds (results/)."""
     ignore_obs: tuple[int, ...] = ()
     """Observation dimensions the policies never see (`cotpc train --ignore-obs`; e.g. 16 17, the Panda's finger
     velocities, which make a finger bouncing off the object look like a release: docs/results/maniskill.md).
