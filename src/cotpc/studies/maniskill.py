@@ -87,8 +87,7 @@ def run(s: ManiSkillStudySettings) -> dict:
         dart = f" (training demos DART-style, arm noise {s.action_noise})" if s.action_noise else ""
         print(f"[1/4] {env_id}: {num} train + {s.val} val + {s.test} test planner demos{dart} -> {demos}", flush=True)
         write_splits(env_id, demos, num, s.test, control_mode=s.control_mode, procs=s.procs,
-                     progress=sys.stderr.isatty(), val=s.val,
-                     demonstrator=demonstrator)
+                     progress=sys.stderr.isatty(), val=s.val, demonstrator=demonstrator)
         defaults = task_defaults(env_id)  # the paper's single-arm setting
         beta, cost = (defaults.beta if s.beta is None else s.beta), defaults.cost
         print(f"[2/4] {env_id}: subskill discovery, {cost} cost, beta={beta}", flush=True)
