@@ -202,6 +202,12 @@ def test_chunked_leak_free_presets_never_see_their_targets(name):
     assert _leaks(name, action_chunk=3) == []
 
 
+def test_leak_free_design_stays_leak_free_with_the_offset_head_on_the_state_token():
+    """`--offset-from state` (the offset head on s(i) instead of cot_i) keeps cotpc-causal leak-free."""
+    assert get_preset("cotpc-causal", offset_from="state").offset_from == "state"
+    assert _leaks("cotpc-causal", offset_from="state") == []
+
+
 def test_the_papers_hybrid_mask_leaks_targets_in_training():
     """The check above has teeth: with the paper's mask, CoT tokens carry a(i) into the predictions at i."""
     leaks = _leaks("cotpc")

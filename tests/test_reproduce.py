@@ -134,6 +134,9 @@ def test_a_run_of_another_design_under_the_same_preset_name_is_not_reused(tmp_pa
     assert finished(run, wanted)
     with pytest.raises(ValueError, match="context"):  # any setting that changes what a run learns
         finished(run, dataclasses.replace(wanted, context=8))
+    assert finished(run, dataclasses.replace(wanted, offset_from="cot"))  # cotpc's own: the same run
+    with pytest.raises(ValueError, match="offset_from"):
+        finished(run, dataclasses.replace(wanted, offset_from="state"))
     other = dataclasses.replace(get_preset("cotpc"), cot_attention="causal", random_cot_mask=False)
     info["policy"] = config_to_dict(other)
     (run / "config.json").write_text(json.dumps(info))

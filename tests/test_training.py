@@ -187,6 +187,19 @@ def test_ignored_observation_dimensions_never_reach_the_policy(data, tmp_path, p
     assert not np.allclose(pol_a.select_action(obs), pol_b.select_action(changed))
 
 
+def test_offset_from_reaches_the_offset_head_and_is_checked(data, tmp_path, capsys):
+    run = train(TrainConfig(data=data, policy="cotpc-causal", out=tmp_path / "run", iters=2, offset_from="state",
+                            **TINY))
+    assert json.loads((run / "config.json").read_text())["policy"]["offset_from"] == "state"
+    assert load_policy(run).model.cfg.offset_from == "state"
+    dt = train(TrainConfig(data=data, policy="dt", out=tmp_path / "dt", iters=2, offset_from="cot", **TINY))
+    assert json.loads((dt / "config.json").read_text())["policy"]["action_head"] == "mse"  # no offset head: ignored
+    with pytest.raises(SystemExit) as stop:  # bet has no CoT tokens for its offset head to read
+        train_main(["--data", str(data), "--policy", "bet", "--out", str(tmp_path / "bad"), "--no-progress",
+                    "--offset-from", "cot"])
+    assert stop.value.code == 2 and "--policy bet: reading a head from CoT tokens" in capsys.readouterr().err
+
+
 def test_ignored_observation_dimensions_are_checked_and_kept_on_resume(data, tmp_path):
     with pytest.raises(ValueError, match="--ignore-obs 6: .* 6-dim observations"):
         train(TrainConfig(data=data, out=tmp_path / "bad", iters=2, ignore_obs=(6,), **TINY))

@@ -286,6 +286,7 @@ def write_report(results: dict, out: Path) -> Path:
         + (f" without dimensions {', '.join(map(str, extra['ignore_obs']))}" if extra.get("ignore_obs") else "")
         + (f"; training demos DART-style (arm noise {s['action_noise']})" if s.get("action_noise") else "")
         + (f"; CoT weight {extra['cot_weight']}" if extra.get("cot_weight") is not None else "")
+        + (f"; offset head on the {extra['offset_from']} token" if extra.get("offset_from") else "")
         + f". Checkpoints: {meta['checkpoint_selection']}.  ",
         f"This invocation {meta['wall_seconds'] / 60:.1f} min on {describe_hardware(meta['hardware'])}; "
         f"torch {meta['versions']['torch']}, mani-skill {meta['versions']['mani_skill']}, "
@@ -412,6 +413,9 @@ class ManiSkillReproduce:
     cot_weight: Optional[float] = None
     """Weight of the CoT loss for the CoT policies (default: the paper's 0.1; other policies have no CoT loss).
     Stack Cube, finger velocities hidden: 1 was best on seed 0's validation, level with 0.1 over 3 seeds (results/)."""
+    offset_from: Optional[Literal["state", "cot", "action"]] = None
+    """The token the offset head of the k-means-headed policies reads (`cotpc train --offset-from`; default: the
+    presets', the i-th CoT token for CoTPC as the paper, the state token for BeT)."""
     ignore_obs: tuple[int, ...] = ()
     """Observation dimensions the policies never see (`cotpc train --ignore-obs`; e.g. 16 17, the Panda's finger
     velocities, which make a finger bouncing off the object look like a release: docs/results/maniskill.md).
@@ -471,7 +475,8 @@ def study_settings(cfg: ManiSkillReproduce) -> ManiSkillStudySettings:
         train=TrainConfig(data=cfg.out / "<task>" / "demos" / "train.h5", iters=cfg.iters, device=cfg.device,
                           batch_size=cfg.batch_size, context=cfg.context, n_centres=cfg.n_centres,
                           use_actions=cfg.use_actions, keep_checkpoints=cfg.keep_checkpoints, compile=cfg.compile,
-                          bf16=cfg.bf16, ignore_obs=tuple(cfg.ignore_obs), cot_weight=cfg.cot_weight),
+                          bf16=cfg.bf16, ignore_obs=tuple(cfg.ignore_obs), cot_weight=cfg.cot_weight,
+                          offset_from=cfg.offset_from),
     )
 
 

@@ -91,6 +91,10 @@ class TrainConfig:
     False: only the position in the window, so the phase must be read from the states."""
     cot_weight: Optional[float] = None
     """lambda, the weight of the CoT loss (default: the paper's 0.1; ignored by policies without a CoT loss)."""
+    offset_from: Optional[Literal["state", "cot", "action"]] = None
+    """Policies with the k-means centre + offset head (bet, cotpc, ...): the token the offset regressor reads for
+    timestep i (default: the preset's; cotpc's is the i-th CoT token, as the paper; ignored by other heads). Not
+    the paper's when changed: e.g. ``state`` lets the CoT tokens only carry the chain of thought."""
     action_chunk: Optional[int] = None
     """Transformer policies: actions predicted per window index, a(i) .. a(i+k-1) (default 1, the paper's; not in
     the paper: Diffusion Policy's action chunks, docs/policies.md)."""
@@ -428,6 +432,7 @@ def _train(config: TrainConfig) -> Path:
             n_layers=config.n_layers, n_heads=config.n_heads, dropout=config.dropout, use_actions=config.use_actions,
             episode_timestep=config.episode_timestep,
             cot_weight=config.cot_weight if PRESETS[config.policy].cot_targets else None,
+            offset_from=config.offset_from if getattr(PRESETS[config.policy], "action_head", None) == "bet" else None,
             action_chunk=config.action_chunk, action_horizon=config.action_horizon,
         )
     except ValueError as e:  # the preset's own consistency checks (e.g. --d-model not divisible by --n-heads)
