@@ -42,13 +42,16 @@ def build(name, trajs, seed=0):
 @pytest.mark.parametrize("name", list(PRESETS))
 def test_every_preset_learns(name, trajs):
     model, ds = build(name, trajs)
-    opt = torch.optim.AdamW(model.parameters(), lr=3e-3)
+    # lr 1e-3 for 100 steps: at 3e-3 (60 steps) some presets stalled on one CPU and not another (no-rand-mask on
+    # an AMX Xeon: loss 5.41 -> 5.16, at 2e-3 o-shared), the float kernels differing; at 1e-3 every preset ends at
+    # <= 0.68 of its first loss on that machine
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-3)
     g = torch.Generator().manual_seed(0)
     fixed = ds.sample(64, torch.Generator().manual_seed(123))
     with torch.no_grad():
         before = model.eval().loss(fixed)[1]
     model.train()
-    for _ in range(60):
+    for _ in range(100):
         loss, metrics = model(ds.sample(32, g))
         assert torch.isfinite(loss)
         opt.zero_grad()
