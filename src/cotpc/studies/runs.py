@@ -172,18 +172,15 @@ def finished(run_dir: Path, wanted: TrainConfig) -> bool:
     ignore = set(RUN_ONLY)
     preset = get_preset(wanted.policy)
     if not preset.n_kmeans_centres:
-        ignore.add("n_centres")  # no k-means head: K changes nothing (BC/DT runs serve studies with any K)
+        ignore |= {"n_centres", "offset_from"}  # no k-means head: K and its offsets' source change nothing
     if not preset.cot_targets:
         ignore.add("cot_weight")  # no CoT loss: its weight changes nothing
-    if getattr(preset, "action_head", None) != "bet":
-        ignore.add("offset_from")  # no offset head: its source changes nothing
-    own = {"offset_from": getattr(preset, "offset_from", None)}  # unset = the preset's own
     diff = {}
     for f in dataclasses.fields(TrainConfig):
         now, was = getattr(wanted, f.name), saved.get(f.name, _DEFAULTS.get(f.name))  # (keys older runs lack)
         now, was = (list(x) if isinstance(x, tuple) else x for x in (now, was))  # config.json holds tuples as lists
-        if f.name in own:
-            now, was = now or own[f.name], was or own[f.name]
+        if f.name == "offset_from" and f.name not in ignore:  # unset = the preset's own
+            now, was = now or preset.offset_from, was or preset.offset_from
         if f.name not in ignore and was != now:
             diff[f.name] = (was, now)
     if "policy" in info:  # the preset's design (a preset name can change meaning)

@@ -432,7 +432,7 @@ def _train(config: TrainConfig) -> Path:
             n_layers=config.n_layers, n_heads=config.n_heads, dropout=config.dropout, use_actions=config.use_actions,
             episode_timestep=config.episode_timestep,
             cot_weight=config.cot_weight if PRESETS[config.policy].cot_targets else None,
-            offset_from=config.offset_from if getattr(PRESETS[config.policy], "action_head", None) == "bet" else None,
+            offset_from=config.offset_from if PRESETS[config.policy].n_kmeans_centres else None,  # offset head only
             action_chunk=config.action_chunk, action_horizon=config.action_horizon,
         )
     except ValueError as e:  # the preset's own consistency checks (e.g. --d-model not divisible by --n-heads)
