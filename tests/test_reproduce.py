@@ -10,7 +10,8 @@ from cotpc.cli.main import main as cotpc_main
 def test_reproduce_runs_end_to_end_and_resumes(tmp_path, capsys):
     out = tmp_path / "study"
     argv = ["reproduce", "maze", "--quick", "--out", str(out), "--iters", "6", "--batch-size", "16",
-            "--train-demos", "30", "--test-demos", "4", "--val-demos", "3", "--policies", "bc", "cotpc", "--ablations", "vanilla"]
+            "--train-demos", "30", "--test-demos", "4", "--val-demos", "3", "--policies", "bc", "cotpc", "--ablations", "vanilla",
+            "--offset-from", "state"]  # reaches the k-means-headed runs; bc has no offset head
     cotpc_main(argv)
     results = json.loads((out / "results.json").read_text())
     for name in ("bc", "cotpc", "vanilla"):
@@ -34,8 +35,10 @@ def test_reproduce_runs_end_to_end_and_resumes(tmp_path, capsys):
     assert results["meta"]["ablations"] == ["vanilla"]
     assert results["meta"]["settings"]["train"]["iters"] == 6
     # --quick trains the BeT-style heads with 128 k-means centres (chosen on validation configs)
-    assert json.loads((out / "runs" / "cotpc" / "seed0" / "config.json").read_text())["policy"]["n_centres"] == 128
+    policy = json.loads((out / "runs" / "cotpc" / "seed0" / "config.json").read_text())["policy"]
+    assert (policy["n_centres"], policy["offset_from"]) == (128, "state")
     report = (out / "report.md").read_text()
+    assert "; offset head on the state token." in report
     assert "| cotpc |" in report and "| vanilla |" in report and "| cotpc (full method, seed 0) |" in report
     assert report.count("| cotpc |") == 2 and "Forgiving readings of the rules" in report
     assert (out / "success.png").exists() and (out / "learning_curves.png").exists()
@@ -151,6 +154,12 @@ def test_a_run_of_another_design_under_the_same_preset_name_is_not_reused(tmp_pa
     (["maze", "--policies", "cotpc", "nope"], "unknown policy 'nope'"),
     (["maniskill", "--batch-size", "0"], "cotpc reproduce maniskill: --batch-size must be"),
     (["kitchen", "--seeds", "0"], "cotpc reproduce kitchen: --seeds must be >= 1"),
+    # a policy the shared flags do not fit: up front, not when its run starts after the demos and the other runs
+    (["maze", "--policies", "cotpc", "bet", "--offset-from", "cot"],
+     "cotpc reproduce maze: --policy bet: reading a head from CoT tokens needs"),
+    (["maniskill", "--policies", "bet", "--offset-from", "cot"], "cotpc reproduce maniskill: --policy bet: reading"),
+    (["maze", "--policies", "cotpc", "--use-actions", "False", "--offset-from", "action"],
+     "--policy cotpc: a head reads action tokens but use_actions is False"),
 ])
 def test_bad_study_flags_fail_before_anything_is_generated(tmp_path, args, says):
     with pytest.raises(SystemExit, match=says):
@@ -169,6 +178,8 @@ def test_maze_study_flags_reach_every_run():
     quick = study_settings(parse(["--quick"]))
     assert (quick.train.iters, quick.train.batch_size, quick.train.n_centres, quick.seeds) == (1500, 64, 128, 1)
     assert quick.train.use_actions is None  # the presets' input: states and actions, as the paper
-    chosen = study_settings(parse(["--quick", "--use-actions", "False", "--iters", "30", "--cot-weight", "3"])).train
-    assert (chosen.use_actions, chosen.iters, chosen.cot_weight) == (False, 30, 3.0)
+    assert quick.train.offset_from is None  # the presets' own: CoTPC's offsets from the CoT token, as the paper
+    chosen = study_settings(parse(["--quick", "--use-actions", "False", "--iters", "30", "--cot-weight", "3",
+                                   "--offset-from", "state"])).train
+    assert (chosen.use_actions, chosen.iters, chosen.cot_weight, chosen.offset_from) == (False, 30, 3.0, "state")
     assert study_settings(parse([])).train.iters == 20_000  # the full study's schedule

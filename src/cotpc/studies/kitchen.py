@@ -81,7 +81,8 @@ def reproduce(cfg: KitchenReproduce) -> dict:
     template = TrainConfig(data=demos / "train.h5", iters=cfg.iters, device=cfg.device, batch_size=cfg.batch_size,
                            n_centres=cfg.n_centres, bf16=cfg.bf16)
     check_study_flags("cotpc reproduce kitchen",  # an unknown policy or bad flag fails here, not after the demos
-                      template, cfg.policies, {"--seeds": cfg.seeds, "--jobs": cfg.jobs, "--train-demos": cfg.train_demos})
+                      template, cfg.policies, {"--seeds": cfg.seeds, "--jobs": cfg.jobs, "--train-demos": cfg.train_demos},
+                      env_ids=(ENV_ID,))
     defaults = task_defaults(ENV_ID)
     write_missing_demos(demos, {"train": cfg.train_demos, "val": cfg.val_demos, "test": cfg.test_demos},
                         cfg.demo_seed)

@@ -485,7 +485,7 @@ def reproduce(cfg: ManiSkillReproduce) -> dict:
     settings = study_settings(cfg)
     check_study_flags("cotpc reproduce maniskill", settings.train, settings.policies,
                       {"--seeds": settings.seeds, "--jobs": settings.jobs, "--procs": settings.procs,
-                       "--num": settings.num, "--curve-every": settings.curve_every})
+                       "--num": settings.num, "--curve-every": settings.curve_every}, env_ids=settings.envs)
     results = run(settings)
     print()
     print(f"{'task':<22}{'policy':<10}{'seen %':>10}{'unseen %':>10}   (success_once, mean over seeds)")

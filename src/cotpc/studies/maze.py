@@ -253,7 +253,10 @@ def write_report(results: dict, out: Path) -> Path:
         f"subskills: {s['cost']} cost, beta {s['beta']}, {s['train']['iters']} training iterations per run at batch "
         f"{s['train']['batch_size'] or 'default (256; bc 32)'}, "
         f"{s['train']['n_centres'] or f'default ({SPEC.defaults.n_centres})'} k-means centres, {s['seeds']} seed(s) per policy, "
-        f"horizon {meta['horizon']}.  ",
+        f"horizon {meta['horizon']}"
+        + (f"; CoT weight {s['train']['cot_weight']}" if s["train"].get("cot_weight") is not None else "")
+        + (f"; offset head on the {s['train']['offset_from']} token" if s["train"].get("offset_from") else "")
+        + ".  ",
         f"Checkpoints: {meta['checkpoint_selection']}.  ",
         f"Training {meta.get('train_seconds_total', 0) / 60:.1f} min in all, this invocation "
         f"{meta['wall_seconds'] / 60:.1f} min, on {describe_hardware(meta['hardware'])}; torch "
@@ -463,6 +466,9 @@ class MazeReproduce:
     iterations, in results.json and val_success.png): choose a schedule without the test configs."""
     cot_weight: Optional[float] = None
     """lambda, the weight of the CoT loss of the CoT policies (default: the paper's 0.1)."""
+    offset_from: Optional[Literal["state", "cot", "action"]] = None
+    """The token the offset head of the k-means-headed policies reads (`cotpc train --offset-from`; default: the
+    presets', the i-th CoT token for CoTPC as the paper, the state token for BeT)."""
     use_actions: Optional[bool] = None
     """Feed past actions to the transformer policies (default: the presets', True, as the paper); False
     conditions them on the states alone (`cotpc train --use-actions`; docs/results/maze.md, states only)."""
@@ -496,7 +502,7 @@ def study_settings(cfg: MazeReproduce) -> ReproduceSettings:
             batch_size=cfg.batch_size if cfg.batch_size is not None else quick.get("batch_size"),
             n_centres=cfg.n_centres if cfg.n_centres is not None else quick.get("n_centres"),
             keep_checkpoints=cfg.keep_checkpoints, cot_weight=cfg.cot_weight, compile=cfg.compile, bf16=cfg.bf16,
-            use_actions=cfg.use_actions,
+            use_actions=cfg.use_actions, offset_from=cfg.offset_from,
             **({"grad_clip": cfg.grad_clip} if cfg.grad_clip is not None else {})),
     )
 
@@ -506,7 +512,7 @@ def reproduce(cfg: MazeReproduce) -> dict:
     settings = study_settings(cfg)
     check_study_flags("cotpc reproduce maze", settings.train, settings.policies + settings.ablations,
                       {"--seeds": settings.seeds, "--jobs": settings.jobs, "--workers": settings.workers,
-                       "--train-demos": settings.train_demos})
+                       "--train-demos": settings.train_demos}, env_ids=(ENV_ID,))
     results = run(settings)
     print()
     print(f"{'policy':<14}{'seen %':>10}{'unseen %':>10}")

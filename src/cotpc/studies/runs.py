@@ -26,7 +26,7 @@ import torch
 from cotpc.envs.spec import check_flags
 from cotpc.policies import config_from_dict, config_to_dict, get_preset, load_policy
 from cotpc.training.precision import cpu_info
-from cotpc.training.train import PROTOCOL_CHECKPOINTS, SettingsError, TrainConfig, check_settings, train
+from cotpc.training.train import PROTOCOL_CHECKPOINTS, SettingsError, TrainConfig, check_settings, policy_config, train
 
 
 def stats(rates: list[float]) -> dict:
@@ -91,14 +91,18 @@ def run_config(template: TrainConfig, run_dir: Path, policy: str, seed: int) -> 
     )
 
 
-def check_study_flags(prog: str, template: TrainConfig, policies, counts: dict[str, int | None]) -> None:
-    """Before a study generates anything: the shared training flags (:func:`check_settings`), the policies, and
+def check_study_flags(prog: str, template: TrainConfig, policies, counts: dict[str, int | None],
+                      env_ids=(None,)) -> None:
+    """Before a study generates anything: the shared training flags (:func:`check_settings`), each policy with
+    them on each task (``--policy bet`` with ``--offset-from cot`` fails here, not when BeT's run starts), and
     ``counts`` ({"--seeds": n, "--jobs": n, ...}, each >= 1 where set); SystemExit naming the first bad one."""
     check_flags(prog, 1, counts)
     try:
         check_settings(template)
         for name in policies:
-            get_preset(name)
+            get_preset(name)  # an unknown name first, as itself
+            for env_id in env_ids:
+                policy_config(dataclasses.replace(template, policy=name), env_id)
     except (SettingsError, KeyError, ValueError) as e:
         raise SystemExit(f"{prog}: {e.args[0] if e.args else e}") from None
 

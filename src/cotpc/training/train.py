@@ -37,7 +37,7 @@ from cotpc.data.trajectories import TrajectoryFormatError, load_trajectories
 from cotpc.envs.spec import task_defaults
 from cotpc.policies import PRESETS, get_preset
 from cotpc.policies.kmeans import kmeans
-from cotpc.policies.base import (average_into, config_from_dict, config_to_dict, ema_decay, make_model,
+from cotpc.policies.base import (BaseConfig, average_into, config_from_dict, config_to_dict, ema_decay, make_model,
                                  params_as_buffers)
 from cotpc.policies.policy import CheckpointError, link_checkpoint, load_state, save_checkpoint
 from cotpc.training.precision import PrecisionChoice, autocast_for, choose_precision
@@ -397,6 +397,28 @@ def check_settings(config: TrainConfig) -> None:
             raise SettingsError(f"{flag} must be in [0, 1), got {value}")
 
 
+def policy_config(config: TrainConfig, env_id: str | None) -> BaseConfig:
+    """The policy configuration a run of ``config`` on the task ``env_id`` trains: the preset with the flags and the
+    task's defaults applied, or SettingsError naming what does not fit (e.g. ``--policy bet --offset-from cot``).
+    Needs no data, so studies call it for every policy before they generate anything."""
+    defaults = task_defaults(env_id)
+    try:
+        return get_preset(
+            config.policy,
+            context=config.context or defaults.context,
+            n_centres=config.n_centres or defaults.n_centres,
+            batch_size=config.batch_size, lr=config.lr, min_lr=config.min_lr, warmup_iters=config.warmup_iters,
+            weight_decay=config.weight_decay, cot_layer=config.cot_layer, d_model=config.d_model,
+            n_layers=config.n_layers, n_heads=config.n_heads, dropout=config.dropout, use_actions=config.use_actions,
+            episode_timestep=config.episode_timestep,
+            cot_weight=config.cot_weight if PRESETS[config.policy].cot_targets else None,
+            offset_from=config.offset_from if PRESETS[config.policy].n_kmeans_centres else None,  # offset head only
+            action_chunk=config.action_chunk, action_horizon=config.action_horizon,
+        )
+    except ValueError as e:  # the preset's own consistency checks (e.g. --d-model not divisible by --n-heads)
+        raise SettingsError(f"--policy {config.policy}: {e}") from None
+
+
 def _train(config: TrainConfig) -> Path:
     check_settings(config)
     ckpt_every = checkpoint_interval(config)
@@ -421,22 +443,7 @@ def _train(config: TrainConfig) -> Path:
     # --- data ---
     trajs = load_trajectories(config.data)
     env_id = trajs.env_info.get("env_id")
-    defaults = task_defaults(env_id)
-    try:
-        cfg = get_preset(
-            config.policy,
-            context=config.context or defaults.context,
-            n_centres=config.n_centres or defaults.n_centres,
-            batch_size=config.batch_size, lr=config.lr, min_lr=config.min_lr, warmup_iters=config.warmup_iters,
-            weight_decay=config.weight_decay, cot_layer=config.cot_layer, d_model=config.d_model,
-            n_layers=config.n_layers, n_heads=config.n_heads, dropout=config.dropout, use_actions=config.use_actions,
-            episode_timestep=config.episode_timestep,
-            cot_weight=config.cot_weight if PRESETS[config.policy].cot_targets else None,
-            offset_from=config.offset_from if PRESETS[config.policy].n_kmeans_centres else None,  # offset head only
-            action_chunk=config.action_chunk, action_horizon=config.action_horizon,
-        )
-    except ValueError as e:  # the preset's own consistency checks (e.g. --d-model not divisible by --n-heads)
-        raise SettingsError(f"--policy {config.policy}: {e}") from None
+    cfg = policy_config(config, env_id)
     if config.ema_decay and hasattr(cfg, "ema_max_decay"):  # the diffusion families
         raise SettingsError(f"--ema-decay: --policy {config.policy} already averages its own weights "
                             f"(ema_max_decay {cfg.ema_max_decay})")
