@@ -159,7 +159,8 @@ def test_state_noise_perturbs_only_the_input_states(data):
     assert torch.equal(ds.sample(64, torch.Generator().manual_seed(0), state_noise=0.0)["states"], clean["states"])
 
 
-@pytest.mark.parametrize("field, bad, used", [("state_noise", -0.1, 0.2), ("boundary_weight", -1.0, 2.0)])
+@pytest.mark.parametrize("field, bad, used", [("state_noise", -0.1, 0.2), ("boundary_weight", -1.0, 2.0),
+                                               ("obs_std_floor", -0.1, 0.5)])
 def test_sampling_option_is_checked_and_kept_on_resume(data, tmp_path, field, bad, used):
     flag = "--" + field.replace("_", "-")
     with pytest.raises(ValueError, match=flag):
@@ -185,6 +186,31 @@ def test_ignored_observation_dimensions_never_reach_the_policy(data, tmp_path, p
     changed[:, 0] += 100.0  # a dimension it does see changes them
     pol_a, pol_b = load_policy(run), load_policy(run)
     assert not np.allclose(pol_a.select_action(obs), pol_b.select_action(changed))
+
+
+def test_obs_std_floor_bounds_what_a_near_constant_dimension_reads(tmp_path, capsys):
+    """A dimension the demos barely move (Stack Cube: cube B's height) is scaled by 1 / std; --obs-std-floor caps
+    that scale, in the checkpoint's statistics, so evaluation normalises as training did."""
+    trajs = synthetic_trajectories(n_episodes=12, obs_dim=6, action_dim=2, length=20, seed=0)
+    rng = np.random.default_rng(0)
+    for ep in trajs.episodes:
+        ep.obs[:, 3] = 0.02 + 1e-5 * rng.normal(size=len(ep.obs))  # resting on the table
+    data = tmp_path / "demos.h5"
+    save_trajectories(data, trajs)
+    stats = Stats.of(np.concatenate([e.obs for e in trajs.episodes]), np.concatenate([e.actions for e in trajs.episodes]),
+                     obs_std_floor=0.01)
+    assert stats.obs_std[3] == pytest.approx(0.01) and (stats.obs_std[[0, 1, 2, 4, 5]] > 0.01).all()
+    plain = train(TrainConfig(data=data, policy="bc", out=tmp_path / "plain", iters=2, **TINY))
+    floored = train(TrainConfig(data=data, policy="bc", out=tmp_path / "floored", iters=2, obs_std_floor=0.01,
+                                **TINY))
+    assert "--obs-std-floor 0.01 raised the std of observation dimensions [3]" in capsys.readouterr().out
+    std_plain = load_file(str(plain / "model.safetensors"))["norm.obs_std"]
+    std_floored = load_file(str(floored / "model.safetensors"))["norm.obs_std"]
+    assert std_plain[3] < 1e-4 and std_floored[3] == pytest.approx(0.01)
+    assert torch.equal(std_plain[[0, 1, 2, 4, 5]], std_floored[[0, 1, 2, 4, 5]])
+    # what the loaded policies read for a 1 cm move of that dimension: thousands of stds, or one
+    assert 0.01 / float(load_policy(plain).model.norm.obs_std[3]) > 500
+    assert 0.01 / float(load_policy(floored).model.norm.obs_std[3]) == pytest.approx(1.0)
 
 
 def test_offset_from_reaches_the_offset_head_and_is_checked(data, tmp_path, capsys):

@@ -34,14 +34,22 @@ class Stats:
     act_std: torch.Tensor
 
     @staticmethod
-    def of(obs: np.ndarray, actions: np.ndarray) -> "Stats":
-        def mean_std(x):
+    def of(obs: np.ndarray, actions: np.ndarray, obs_std_floor: float = 0.0) -> "Stats":
+        """Mean and std of each dimension. ``obs_std_floor`` raises an observation std below it to it (in the
+        observation's units): a near-constant dimension is otherwise blown up by 1 / std, so a move the demos
+        never made reads as thousands of stds (Stack Cube: cube B's height, std 1e-5 m)."""
+        def mean_std(x, floor=0.0):
             x = torch.as_tensor(x, dtype=torch.float64)
             std = x.std(0, unbiased=False)
             std = torch.where(std < 1e-6, torch.ones_like(std), std)  # a constant dimension stays as is
-            return x.mean(0).float(), std.float()
+            return x.mean(0).float(), std.clamp_min(floor).float()
 
-        return Stats(*mean_std(obs), *mean_std(actions))
+        return Stats(*mean_std(obs, obs_std_floor), *mean_std(actions))
+
+    def small_obs_std(self, below: float) -> list[int]:
+        """Observation dimensions whose (finite) std is below ``below``."""
+        std = self.obs_std
+        return [int(d) for d in torch.nonzero(torch.isfinite(std) & (std < below)).flatten()]
 
     def ignoring(self, obs_dims) -> "Stats":
         """These statistics with the observation dimensions ``obs_dims`` normalised to 0 whatever their value (mean

@@ -109,6 +109,12 @@ class TrainConfig:
     inference alike (their std is stored as infinity in the checkpoint's statistics). For Stack Cube, 16 17 are
     the two finger-joint velocities, which make a finger bouncing off the cube look like a release
     (docs/results/maniskill.md). Default: none."""
+    obs_std_floor: float = 0.0
+    """Lower bound on each observation dimension's std for normalisation, in the observation's units (0 = off,
+    as the paper: only a constant dimension is left unscaled). A near-constant dimension is otherwise scaled by
+    1 / std: on Stack Cube cube B's height and tilt (std 1e-5 m, 1e-4) read in the hundreds to thousands once A is
+    set down on B, far outside anything trained on (docs/results/maniskill.md). 0.01 suits metres and radians.
+    Stored in the checkpoint's statistics, so evaluation normalises alike."""
     boundary_weight: float = 1.0
     """Sample training windows that end within --boundary-radius steps of a boundary between two subskills (from
     `cotpc segment`) this many times as often as the others (1 = uniform, as the paper)."""
@@ -195,7 +201,8 @@ PROTOCOL_CHECKPOINTS = 20
 # The TrainConfig fields that decide how training windows are drawn and which kernels compute the step: a resumed
 # run must use the same ones to continue bit for bit (a training state saved before a field existed was trained
 # with the field's default).
-RESUME_MUST_MATCH = ("state_noise", "boundary_weight", "boundary_radius", "compile", "ema_decay", "ignore_obs")
+RESUME_MUST_MATCH = ("state_noise", "boundary_weight", "boundary_radius", "compile", "ema_decay", "ignore_obs",
+                     "obs_std_floor")
 
 
 class SettingsError(ValueError):
@@ -388,7 +395,7 @@ def check_settings(config: TrainConfig) -> None:
     for name in ("lr", "boundary_weight"):
         at_least(name, 0, strict=True)
     for name in ("min_lr", "warmup_iters", "weight_decay", "cot_weight", "state_noise", "boundary_radius",
-                 "grad_clip"):
+                 "grad_clip", "obs_std_floor"):
         at_least(name, 0)
     at_least("stop_after", 1)
     for flag, value in (("--dropout", config.dropout), ("--val-fraction", config.val_fraction),
@@ -460,7 +467,12 @@ def _train(config: TrainConfig) -> Path:
     if bad:
         raise SettingsError(f"--ignore-obs {' '.join(map(str, bad))}: {config.data} has {trajs.obs_dim}-dim "
                             f"observations (dimensions 0..{trajs.obs_dim - 1})")
-    stats = Stats.of(obs_all, act_all).ignoring(config.ignore_obs)
+    raw_stats = Stats.of(obs_all, act_all)
+    stats = Stats.of(obs_all, act_all, config.obs_std_floor).ignoring(config.ignore_obs)
+    if main_proc and config.obs_std_floor:
+        raised = [d for d in raw_stats.small_obs_std(config.obs_std_floor) if d not in config.ignore_obs]
+        print(f"{config.policy}: --obs-std-floor {config.obs_std_floor:g} raised the std of observation dimensions "
+              f"{raised or 'none'}", flush=True)
     where = str(config.data)
     fut = cfg.future_actions  # action chunks (Diffusion Policy); 0 for the other families
     fut_s = cfg.future_states  # planned states (Decision Diffuser); 0 for the other families
