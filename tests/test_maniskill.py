@@ -274,14 +274,15 @@ def test_reproduce_flags_reach_every_run():
 
     train = study_settings(parse(["--context", "60", "--bf16", "False", "--batch-size", "64",
                                   "--use-actions", "False", "--ignore-obs", "16", "17", "--cot-weight", "1",
-                                  "--offset-from", "state"])).train
+                                  "--offset-from", "state", "--obs-std-floor", "0.01"])).train
     assert (train.context, train.bf16, train.batch_size, train.use_actions) == (60, False, 64, False)
-    assert (train.cot_weight, train.offset_from) == (1.0, "state")
+    assert (train.cot_weight, train.offset_from, train.obs_std_floor) == (1.0, "state", 0.01)
     assert train.ignore_obs == (16, 17)
     default = study_settings(parse([])).train
     assert default.ignore_obs == ()  # default: every dimension, as the paper
     assert default.cot_weight is None  # default: the paper's 0.1
     assert default.offset_from is None  # default: the presets' (CoTPC's reads the CoT token, as the paper)
+    assert default.obs_std_floor == 0.0  # default: off, as the paper
     assert default.bf16 is None  # default: each run races the two precisions
     assert default.use_actions is None  # default: the preset's (action tokens, as the paper)
 
@@ -317,7 +318,7 @@ def test_maniskill_report_for_a_task_without_stage_flags(tmp_path):
     split = {**stats, "success_at_end": stats, "stages_once": {}, "max_normalized_reward": 0.25}
     meta = {"settings": {"seeds": 1, "control_mode": "pd_joint_delta_pos", "action_noise": 0.1,
                          "train": {"iters": 2, "batch_size": None, "n_centres": None, "ignore_obs": [16, 17],
-                                   "cot_weight": 1.0, "offset_from": "state"}},
+                                   "cot_weight": 1.0, "offset_from": "state", "obs_std_floor": 0.01}},
             "checkpoint_selection": "final", "wall_seconds": 1.0, "demos": {"PegInsertionSide-v1": 3},
             "horizons": {"PegInsertionSide-v1": 200}, "subskills": {}, "train_seconds": {}, "paper": PAPER,
             "hardware": {"cpus": 2, "machine": "x86_64"},
@@ -326,4 +327,4 @@ def test_maniskill_report_for_a_task_without_stage_flags(tmp_path):
                           tmp_path).read_text()
     assert "| policy | max normalised reward |\n|---|---|\n| bet | 0.250 |" in report
     assert "| bet | 0.0 ± 0.0 [0.0] |" in report and "| 42.5 |" in report
-    assert "state observations without dimensions 16, 17; training demos DART-style (arm noise 0.1); CoT weight 1.0; offset head on the state token." in report
+    assert "state observations without dimensions 16, 17; training demos DART-style (arm noise 0.1); CoT weight 1.0; offset head on the state token; observation std floored at 0.01." in report

@@ -153,6 +153,7 @@ def test_a_run_of_another_design_under_the_same_preset_name_is_not_reused(tmp_pa
     (["maze", "--jobs", "0"], "--jobs must be >= 1"),
     (["maze", "--policies", "cotpc", "nope"], "unknown policy 'nope'"),
     (["maniskill", "--batch-size", "0"], "cotpc reproduce maniskill: --batch-size must be"),
+    (["maniskill", "--obs-std-floor", "-1"], "cotpc reproduce maniskill: --obs-std-floor must be a finite number >= 0"),
     (["kitchen", "--seeds", "0"], "cotpc reproduce kitchen: --seeds must be >= 1"),
     # a policy the shared flags do not fit: up front, not when its run starts after the demos and the other runs
     (["maze", "--policies", "cotpc", "bet", "--offset-from", "cot"],

@@ -287,6 +287,7 @@ def write_report(results: dict, out: Path) -> Path:
         + (f"; training demos DART-style (arm noise {s['action_noise']})" if s.get("action_noise") else "")
         + (f"; CoT weight {extra['cot_weight']}" if extra.get("cot_weight") is not None else "")
         + (f"; offset head on the {extra['offset_from']} token" if extra.get("offset_from") else "")
+        + (f"; observation std floored at {extra['obs_std_floor']:g}" if extra.get("obs_std_floor") else "")
         + f". Checkpoints: {meta['checkpoint_selection']}.  ",
         f"This invocation {meta['wall_seconds'] / 60:.1f} min on {describe_hardware(meta['hardware'])}; "
         f"torch {meta['versions']['torch']}, mani-skill {meta['versions']['mani_skill']}, "
@@ -420,6 +421,10 @@ class ManiSkillReproduce:
     """Observation dimensions the policies never see (`cotpc train --ignore-obs`; e.g. 16 17, the Panda's finger
     velocities, which make a finger bouncing off the object look like a release: docs/results/maniskill.md).
     Default: none, as the paper."""
+    obs_std_floor: float = 0.0
+    """Lower bound on each observation std used for normalisation (`cotpc train --obs-std-floor`; 0.01 suits
+    ManiSkill's metres and radians: cube B's height otherwise reads in the thousands of stds once A is set down
+    on it, docs/results/maniskill.md). Default: off, as the paper."""
     num: Optional[int] = None
     """Training demos per task (default: the paper's, 500 Stack Cube and 1000 Peg Insertion)."""
     action_noise: float = 0.0
@@ -476,7 +481,7 @@ def study_settings(cfg: ManiSkillReproduce) -> ManiSkillStudySettings:
                           batch_size=cfg.batch_size, context=cfg.context, n_centres=cfg.n_centres,
                           use_actions=cfg.use_actions, keep_checkpoints=cfg.keep_checkpoints, compile=cfg.compile,
                           bf16=cfg.bf16, ignore_obs=tuple(cfg.ignore_obs), cot_weight=cfg.cot_weight,
-                          offset_from=cfg.offset_from),
+                          offset_from=cfg.offset_from, obs_std_floor=cfg.obs_std_floor),
     )
 
 
