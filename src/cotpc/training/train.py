@@ -467,10 +467,10 @@ def _train(config: TrainConfig) -> Path:
     if bad:
         raise SettingsError(f"--ignore-obs {' '.join(map(str, bad))}: {config.data} has {trajs.obs_dim}-dim "
                             f"observations (dimensions 0..{trajs.obs_dim - 1})")
-    raw_stats = Stats.of(obs_all, act_all)
     stats = Stats.of(obs_all, act_all, config.obs_std_floor).ignoring(config.ignore_obs)
-    if main_proc and config.obs_std_floor:
-        raised = [d for d in raw_stats.small_obs_std(config.obs_std_floor) if d not in config.ignore_obs]
+    if main_proc and config.obs_std_floor:  # say which dimensions the floor changed
+        below = Stats.of(obs_all, act_all).small_obs_std(config.obs_std_floor)
+        raised = [d for d in below if d not in config.ignore_obs]
         print(f"{config.policy}: --obs-std-floor {config.obs_std_floor:g} raised the std of observation dimensions "
               f"{raised or 'none'}", flush=True)
     where = str(config.data)
