@@ -130,3 +130,31 @@ def test_only_the_training_demos_are_altered(monkeypatch, tmp_path):
     make_demos(ManiSkillDemos(out=tmp_path, num=3, val=2, test=2, action_noise=0.1, close_hold=2))
     assert made["train"] == Demonstrator(0.1, close_hold=2)
     assert made["val"] == made["test"] == Demonstrator()  # the planner's own
+
+
+def test_holding_still_after_the_success_is_noise_free_zero_arm_deltas():
+    rec = Recorder(Spy(), record_obs=True, demonstrator=Demonstrator(0.3))
+    rec.reset(seed=1)
+    plan = np.array([[0.5, -0.2, 0.1, -1.0], [0.4, 0.3, -0.6, 1.0]], np.float32)  # ends with the gripper opened
+    for a in plan:
+        rec.step(a)
+    rec.hold_still(3)
+    recorded, executed = np.stack(rec.actions), np.stack(rec.env.executed).reshape(5, -1)
+    assert np.array_equal(recorded[:2], plan) and not np.array_equal(executed[:2], plan)  # the plan: noisy
+    assert np.array_equal(recorded[2:], [[0, 0, 0, 1.0]] * 3)  # zero arm deltas, the gripper kept open
+    assert np.array_equal(executed[2:], recorded[2:])  # executed as recorded: no noise while holding
+    assert len(rec.obs) == 6 and len(rec.success) == 5
+    assert rec.demonstrator == Demonstrator(0.3)  # the noise is back for the next demo
+    with pytest.raises(ValueError, match="needs a recorded action"):
+        fresh = Recorder(Spy(), record_obs=True)
+        fresh.reset(seed=0)
+        fresh.hold_still(2)
+
+
+def test_hold_after_success_is_part_of_the_generation_key_and_checked():
+    assert "hold_after_success" not in _generation_key("StackCube-v1", "pd_joint_delta_pos", "train", 0)
+    key = _generation_key("StackCube-v1", "pd_joint_delta_pos", "train", 0, Demonstrator(0.1, hold_after_success=20))
+    assert key["hold_after_success"] == 20
+    assert "20 steps of holding still" in Demonstrator.describe(key)
+    with pytest.raises(SystemExit, match="--hold-after-success must be >= 0"):
+        make_demos(ManiSkillDemos(hold_after_success=-1))

@@ -199,6 +199,22 @@ def test_segment_train_and_eval(stack_demos, tmp_path):
     SEEDS.check(result["episodes"][0]["seed"], "test")
 
 
+def test_held_demos_are_the_plain_demos_then_stillness(stack_demos, tmp_path):
+    from cotpc.data import load_trajectories
+
+    cotpc_main(["demos", "maniskill", "--env", "StackCube-v1", "--out", str(tmp_path), "--num", "1", "--test", "0",
+                "--hold-after-success", "15", "--no-progress"])
+    held = load_trajectories(tmp_path / "train.h5").episodes[0]
+    plain = load_trajectories(stack_demos / "train.h5").episodes[0]
+    n = plain.num_steps
+    assert held.reset_kwargs == plain.reset_kwargs and held.num_steps == n + 15
+    assert np.array_equal(held.actions[:n], plain.actions) and np.array_equal(held.obs[: n + 1], plain.obs)
+    assert not held.actions[n:, :-1].any() and (held.actions[n:, -1] == plain.actions[-1, -1]).all()
+    assert held.success[n - 1:].all()  # the success holds through the stillness
+    assert np.abs(held.obs[n + 1:, :7] - held.obs[n, :7]).max() < 0.01  # the arm's joints stay where they were
+    assert held.extras["key_flags"].shape == (n + 15, 2)
+
+
 def test_ee_delta_pose_conversion(tmp_path):
     needs_maniskill()
     from cotpc.data import load_trajectories

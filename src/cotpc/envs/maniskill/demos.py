@@ -77,11 +77,14 @@ class Demonstrator:
     ``action_noise``: DART-style noise on the executed arm actions (Laskey et al., 2017), Gaussian of this std in
     normalised action units, the clean (corrective) actions recorded; ``grasped_noise``: that std instead while the
     object is held (None = ``action_noise`` throughout); ``close_hold``: steps the arm holds still after each
-    gripper close (None = the planner's own 6, :func:`shorten_close_holds`)."""
+    gripper close (None = the planner's own 6, :func:`shorten_close_holds`); ``hold_after_success``: steps of
+    holding still (zero arm deltas, the gripper as last commanded, no noise) appended after the plan's success,
+    :meth:`Recorder.hold_still`."""
 
     action_noise: float = 0.0
     grasped_noise: float | None = None
     close_hold: int | None = None
+    hold_after_success: int = 0
 
     def __post_init__(self):
         for name in ("action_noise", "grasped_noise"):
@@ -90,6 +93,8 @@ class Demonstrator:
                 raise ValueError(f"--{name.replace('_', '-')} must be a std >= 0, got {std}")
         if self.close_hold is not None and self.close_hold < 1:
             raise ValueError(f"--close-hold must be >= 1 step, got {self.close_hold}")
+        if self.hold_after_success < 0:
+            raise ValueError(f"--hold-after-success must be >= 0 steps, got {self.hold_after_success}")
 
     def noise_std(self, grasped_now: bool) -> float:
         return self.grasped_noise if self.grasped_noise is not None and grasped_now else self.action_noise
@@ -99,7 +104,8 @@ class Demonstrator:
         an option existed resume as before; a ``grasped_noise`` of 0 is a setting, not "off"."""
         key = {"action_noise": self.action_noise} if self.action_noise else {}
         key |= {"grasped_noise": self.grasped_noise} if self.grasped_noise is not None else {}
-        return key | ({"close_hold": self.close_hold} if self.close_hold is not None else {})
+        key |= {"close_hold": self.close_hold} if self.close_hold is not None else {}
+        return key | ({"hold_after_success": self.hold_after_success} if self.hold_after_success else {})
 
     @staticmethod
     def describe(gen: dict) -> str:
@@ -112,6 +118,8 @@ class Demonstrator:
                      f"{while_grasped}, the clean (corrective) actions recorded")
         if gen.get("close_hold") is not None:
             text += f"; the arm held still {gen['close_hold']} steps after each gripper close (the planner's own: 6)"
+        if gen.get("hold_after_success"):
+            text += f"; {gen['hold_after_success']} steps of holding still (zero arm deltas) appended after the success"
         return text
 
 
@@ -167,6 +175,22 @@ class Recorder(gym.Wrapper):
             self.key_flags.append(list(key_state_flags(self.key_flags_of, self.env, info).values()))
         return obs, reward, terminated, truncated, info
 
+    def hold_still(self, steps: int) -> None:
+        """Step ``steps`` times with zero arm deltas and the gripper as last commanded, executed without noise:
+        in the delta control modes (every mode demos are converted to) that is the action that keeps the arm
+        where it is, so a demo goes on showing what to do once the task is done (nothing), where the planner's
+        demo ends at once and policies run off their data (docs/results/maniskill.md, success_at_end)."""
+        if not self.actions:
+            raise ValueError("hold_still needs a recorded action (the gripper's command to keep)")
+        hold = np.zeros_like(self.actions[-1])
+        hold[-1] = self.actions[-1][-1]
+        demonstrator, self.demonstrator = self.demonstrator, Demonstrator()
+        try:
+            for _ in range(steps):
+                self.step(hold)
+        finally:
+            self.demonstrator = demonstrator
+
 
 class _Worker:
     """One process's environments (built once): planner env, original-mode env and target env for conversion."""
@@ -214,6 +238,10 @@ class _Worker:
         t2 = time.perf_counter()
         if not self.env.success or not self.env.success[-1]:
             return {"seed": seed, "ok": False, "reason": "converted actions fail", "plan_s": t1 - t0}
+        if self.demonstrator.hold_after_success:
+            self.env.hold_still(self.demonstrator.hold_after_success)
+            if not self.env.success[-1]:
+                return {"seed": seed, "ok": False, "reason": "success lost while holding still", "plan_s": t1 - t0}
         n_flags = len(KEY_STATE_FLAGS.get(self.env_id, ()))
         key_flags = np.array(self.env.key_flags, dtype=bool).reshape(len(self.env.actions), n_flags)
         return {
@@ -490,6 +518,11 @@ class ManiSkillDemos:
     """Steps the arm holds still after the gripper is told to close (default: the planner's own, 6). The fingers
     close in ~2 steps; the rest is a pause the state does not show, which policies fail to time
     (docs/results/maniskill.md). With 2 the arm lifts as soon as the fingers have closed. Not the paper's demos."""
+    hold_after_success: int = 0
+    """Steps appended to each training demo after its success, the arm held still (zero joint deltas, the gripper
+    as last commanded, no noise); a demo that loses its success meanwhile is dropped. The planner's demos end at
+    the success, so nothing shows a policy what to do afterwards and it wanders off (success_at_end below
+    success_once, docs/results/maniskill.md). 0 = off. Not the paper's demos."""
 
 
 def make_demos(cfg: ManiSkillDemos) -> dict[str, Path]:
@@ -497,17 +530,18 @@ def make_demos(cfg: ManiSkillDemos) -> dict[str, Path]:
     check_demo_flags("cotpc demos maniskill", {"--num": cfg.num, "--val": cfg.val, "--test": cfg.test},
                      {"--procs": cfg.procs, "--max-attempts": cfg.max_attempts}, {"--offset": cfg.offset})
     demonstrator = checked_demonstrator("cotpc demos maniskill", cfg.action_noise, cfg.grasped_noise, cfg.close_hold,
-                                        env_id=cfg.env)
+                                        env_id=cfg.env, hold_after_success=cfg.hold_after_success)
     return write_splits(cfg.env, cfg.out, cfg.num, cfg.test, control_mode=cfg.control_mode, procs=cfg.procs,
                         offset=cfg.offset, max_attempts=cfg.max_attempts, progress=cfg.progress, val=cfg.val,
                         demonstrator=demonstrator)
 
 
 def checked_demonstrator(command: str, action_noise: float = 0.0, grasped_noise: float | None = None,
-                         close_hold: int | None = None, env_id: str | None = None) -> Demonstrator:
+                         close_hold: int | None = None, env_id: str | None = None,
+                         hold_after_success: int = 0) -> Demonstrator:
     """The :class:`Demonstrator` of a command's flags (for ``env_id``), or a clear error naming the flag."""
     try:
-        demonstrator = Demonstrator(action_noise, grasped_noise, close_hold)
+        demonstrator = Demonstrator(action_noise, grasped_noise, close_hold, hold_after_success)
     except ValueError as e:
         raise SystemExit(f"{command}: {e}") from None
     if grasped_noise is not None and not KEY_STATE_FLAGS.get(env_id):
