@@ -152,6 +152,22 @@ def test_demos_replay_to_success_through_the_eval_path(stack_demos):
     assert s["mean_max_normalized_reward"] == pytest.approx(1.0)
 
 
+def test_peg_insertion_evaluation_reports_its_key_states_as_progress(tmp_path):
+    """Peg Insertion's info has no progress flags of its own: the evaluation reads the privileged key states
+    (peg grasped, pre-inserted) from the simulator, as the demos record them."""
+    needs_maniskill()
+    from cotpc.data import load_trajectories
+    from cotpc.envs.maniskill.rollout import evaluate, replay_factory
+
+    cotpc_main(["demos", "maniskill", "--env", "PegInsertionSide-v1", "--out", str(tmp_path), "--num", "1",
+                "--test", "0", "--no-progress"])
+    demo = load_trajectories(tmp_path / "train.h5").episodes[0]
+    assert demo.extras["key_flags"].any(axis=0).all()  # the demo passes through both key states
+    s = evaluate(replay_factory(tmp_path / "train.h5"), tmp_path, "seen", progress=False, backend="cpu").summary()
+    assert s["success_once"] == 1.0
+    assert s["stages_once"] == {"is_grasped": 1.0, "pre_inserted": 1.0}
+
+
 def test_resume_extends_a_split_with_the_same_demos(stack_demos, tmp_path):
     import shutil
 

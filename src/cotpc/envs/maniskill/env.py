@@ -199,23 +199,29 @@ KEY_STATE_FLAGS = {
 }
 
 
-def _flag(x) -> bool:
-    return bool(np.asarray(x.detach().cpu() if hasattr(x, "detach") else x).reshape(-1)[0])
+def _flags(x) -> np.ndarray:
+    return np.asarray(x.detach().cpu() if hasattr(x, "detach") else x, dtype=bool).reshape(-1)
 
 
-def key_state_flags(env_id: str, env, info: dict) -> dict[str, bool]:
-    """This step's key-state flags of ``env_id`` (:data:`KEY_STATE_FLAGS`; none for other tasks), from ``info``
-    or, for Peg Insertion, from the simulator as the official code's patch and ManiSkill3's dense reward define
-    them: grasped with the gripper at most 20 degrees off, and pre-inserted when the peg and its head are both
-    within 1 cm of the hole's axis (in the goal frame's y-z plane) while grasped."""
+def key_state_arrays(env_id: str, env, info: dict) -> dict[str, np.ndarray]:
+    """This step's key-state flags of ``env_id`` (:data:`KEY_STATE_FLAGS`; none for other tasks), one (B,) bool
+    array per flag (B parallel environments), from ``info`` or, for Peg Insertion, from the simulator as the
+    official code's patch and ManiSkill3's dense reward define them: grasped with the gripper at most 20 degrees
+    off, and pre-inserted when the peg and its head are both within 1 cm of the hole's axis (in the goal frame's
+    y-z plane) while grasped."""
     if env_id == "PegInsertionSide-v1":
         task = env.unwrapped
         grasped = task.agent.is_grasping(task.peg, max_angle=20)
         head = (task.goal_pose.inv() * task.peg_head_pose).p[:, 1:]
         centre = (task.goal_pose.inv() * task.peg.pose).p[:, 1:]
         lined_up = (head.norm(dim=1) < 0.01) & (centre.norm(dim=1) < 0.01)
-        return {"is_grasped": _flag(grasped), "pre_inserted": _flag(grasped & lined_up)}
-    return {name: _flag(info[name]) for name in KEY_STATE_FLAGS.get(env_id, ())}
+        return {"is_grasped": _flags(grasped), "pre_inserted": _flags(grasped & lined_up)}
+    return {name: _flags(info[name]) for name in KEY_STATE_FLAGS.get(env_id, ())}
+
+
+def key_state_flags(env_id: str, env, info: dict) -> dict[str, bool]:
+    """:func:`key_state_arrays` of a single environment (its first), as bools."""
+    return {name: bool(value[0]) for name, value in key_state_arrays(env_id, env, info).items()}
 
 
 def key_steps_from_flags(env_id: str, flags: np.ndarray) -> np.ndarray:

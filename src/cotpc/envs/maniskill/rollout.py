@@ -33,7 +33,7 @@ import torch
 from tqdm import tqdm
 
 from cotpc.data.trajectories import load_trajectories
-from cotpc.envs.maniskill.env import HORIZONS, SEEDS, flat_obs, import_maniskill, make_env
+from cotpc.envs.maniskill.env import HORIZONS, SEEDS, flat_obs, import_maniskill, key_state_arrays, make_env
 from cotpc.evaluation.request import load_for_eval
 from cotpc.evaluation.stats import wilson_interval
 
@@ -120,12 +120,14 @@ _STATE: dict[str, Any] = {}
 def _init_worker(env_id: str, control_mode: str, horizon: int, make_policy: Callable[[], Any], threads: int) -> None:
     torch.set_num_threads(threads)
     _STATE.update(env=make_env(env_id, control_mode, max_episode_steps=horizon, reward_mode=REWARD_MODE),
-                  policy=make_policy(), horizon=horizon)
+                  policy=make_policy(), horizon=horizon, env_id=env_id)
 
 
-def stage_flags(info: dict) -> dict[str, np.ndarray]:
-    """The task's boolean progress flags in ``info`` (not ``success`` itself), each as a (B,) bool array."""
-    flags = {}
+def stage_flags(info: dict, env_id: str | None = None, env=None) -> dict[str, np.ndarray]:
+    """The task's boolean progress flags in ``info`` (not ``success`` itself), each as a (B,) bool array, and
+    with ``env_id`` and ``env`` its privileged key-state flags (:func:`key_state_arrays`): Peg Insertion's info
+    has none of its own, and progress short of success is read from them (peg grasped, pre-inserted)."""
+    flags = key_state_arrays(env_id, env, info) if env_id is not None else {}
     for key, value in info.items():
         if key in ("success", "fail", "elapsed_steps") or key.startswith("_"):
             continue
@@ -138,7 +140,7 @@ def stage_flags(info: dict) -> dict[str, np.ndarray]:
 def _episode(seed: int) -> tuple[int, bool, bool, int, dict[str, bool], float]:
     """One episode from ``seed`` in this process's env: (seed, success_once, success_at_end, first success step,
     stage flags ever true, highest normalised dense reward)."""
-    env, policy, horizon = _STATE["env"], _STATE["policy"], _STATE["horizon"]
+    env, policy, horizon, env_id = _STATE["env"], _STATE["policy"], _STATE["horizon"], _STATE["env_id"]
     obs, _ = env.reset(seed=int(seed), options={"reconfigure": True})
     policy.reset()
     first, success, stages, best = -1, False, {}, -np.inf
@@ -148,7 +150,7 @@ def _episode(seed: int) -> tuple[int, bool, bool, int, dict[str, bool], float]:
         success = bool(_to_numpy(info["success"]).reshape(-1)[0])
         if success and first < 0:
             first = t + 1
-        for key, value in stage_flags(info).items():
+        for key, value in stage_flags(info, env_id, env).items():
             stages[key] = stages.get(key, False) or bool(value[0])
         best = max(best, float(_to_numpy(reward).reshape(-1)[0]))
     return int(seed), first > 0, success, first, stages, best
@@ -219,7 +221,7 @@ def rollout_gpu(
                                                                    device=env.unwrapped.device))
                 success = _to_numpy(info["success"]).reshape(-1).astype(bool)
                 first_b[(first_b < 0) & success] = t + 1
-                for key, value in stage_flags(info).items():
+                for key, value in stage_flags(info, env_id, env).items():
                     stages[key] = stages.get(key, np.zeros(n, bool)) | value
                 best = np.maximum(best, _to_numpy(reward).reshape(-1))
             for i, seed in enumerate(batch):
