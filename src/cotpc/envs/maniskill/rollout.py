@@ -123,11 +123,11 @@ def _init_worker(env_id: str, control_mode: str, horizon: int, make_policy: Call
                   policy=make_policy(), horizon=horizon, env_id=env_id)
 
 
-def stage_flags(info: dict, env_id: str | None = None, env=None) -> dict[str, np.ndarray]:
-    """The task's boolean progress flags in ``info`` (not ``success`` itself), each as a (B,) bool array, and
-    with ``env_id`` and ``env`` its privileged key-state flags (:func:`key_state_arrays`): Peg Insertion's info
-    has none of its own, and progress short of success is read from them (peg grasped, pre-inserted)."""
-    flags = key_state_arrays(env_id, env, info) if env_id is not None else {}
+def stage_flags(info: dict, env_id: str, env) -> dict[str, np.ndarray]:
+    """The task's boolean progress flags in ``info`` (not ``success`` itself), each as a (B,) bool array, and its
+    privileged key-state flags (:func:`key_state_arrays`): Peg Insertion's info has none of its own, and progress
+    short of success is read from them (peg grasped, pre-inserted)."""
+    flags = key_state_arrays(env_id, env, info)
     for key, value in info.items():
         if key in ("success", "fail", "elapsed_steps") or key.startswith("_"):
             continue
