@@ -333,13 +333,18 @@ def test_reproduce_action_noise_makes_dart_training_demos(monkeypatch, tmp_path)
 
     monkeypatch.setattr(study, "write_splits", fake_write_splits)
     monkeypatch.setattr(study, "import_maniskill", lambda: None)
-    for argv, expected in ((["--action-noise", "0.1"], Demonstrator(0.1)), ([], Demonstrator())):
+    for argv, expected in ((["--action-noise", "0.1"], Demonstrator(0.1)), ([], Demonstrator()),
+                           (["--action-noise", "0.1", "--hold-after-success", "20"],
+                            Demonstrator(0.1, hold_after_success=20))):
         settings = study.study_settings(tyro.cli(study.ManiSkillReproduce, args=["--out", str(tmp_path), *argv]))
         with pytest.raises(KeyboardInterrupt):
             study.run(settings)
         assert asked["StackCube-v1"] == expected
     bad = study.study_settings(study.ManiSkillReproduce(out=tmp_path, action_noise=-1.0))
     with pytest.raises(SystemExit, match="cotpc reproduce maniskill: --action-noise must be a std >= 0"):
+        study.run(bad)
+    bad = study.study_settings(study.ManiSkillReproduce(out=tmp_path, hold_after_success=-1))
+    with pytest.raises(SystemExit, match="cotpc reproduce maniskill: --hold-after-success must be >= 0"):
         study.run(bad)
 
 
@@ -349,6 +354,7 @@ def test_maniskill_report_for_a_task_without_stage_flags(tmp_path):
     stats = {"mean": 0.0, "std": 0.0, "best": 0.0, "runs": [0.0]}
     split = {**stats, "success_at_end": stats, "stages_once": {}, "max_normalized_reward": 0.25}
     meta = {"settings": {"seeds": 1, "control_mode": "pd_joint_delta_pos", "action_noise": 0.1,
+                         "hold_after_success": 20,
                          "train": {"iters": 2, "batch_size": None, "n_centres": None, "ignore_obs": [16, 17],
                                    "cot_weight": 1.0, "offset_from": "state", "obs_std_floor": 0.01}},
             "checkpoint_selection": "final", "wall_seconds": 1.0, "demos": {"PegInsertionSide-v1": 3},
@@ -359,4 +365,4 @@ def test_maniskill_report_for_a_task_without_stage_flags(tmp_path):
                           tmp_path).read_text()
     assert "| policy | max normalised reward |\n|---|---|\n| bet | 0.250 |" in report
     assert "| bet | 0.0 ± 0.0 [0.0] |" in report and "| 42.5 |" in report
-    assert "state observations without dimensions 16, 17; training demos DART-style (arm noise 0.1); CoT weight 1.0; offset head on the state token; observation std floored at 0.01." in report
+    assert "state observations without dimensions 16, 17; training demos DART-style (arm noise 0.1); training demos held still 20 steps after the success; CoT weight 1.0; offset head on the state token; observation std floored at 0.01." in report

@@ -63,10 +63,12 @@ class ManiSkillStudySettings:
     procs: int = 2
     backend: str = "auto"
     action_noise: float = 0.0  # DART-style noise on the training demos' executed arm actions (0: the planner's)
+    hold_after_success: int = 0  # still steps appended to each training demo after its success (0: none)
 
 
 def run(s: ManiSkillStudySettings) -> dict:
-    demonstrator = checked_demonstrator("cotpc reproduce maniskill", s.action_noise)  # flags first
+    demonstrator = checked_demonstrator("cotpc reproduce maniskill", s.action_noise,
+                                        hold_after_success=s.hold_after_success)  # flags first
     import_maniskill()
     unknown = [e for e in s.envs if e not in HORIZONS]
     if unknown:
@@ -85,6 +87,8 @@ def run(s: ManiSkillStudySettings) -> dict:
         demos = task / "demos"
         num = demo_counts[env_id]
         dart = f" (training demos DART-style, arm noise {s.action_noise})" if s.action_noise else ""
+        if s.hold_after_success:
+            dart += f" (held still {s.hold_after_success} steps after the success)"
         print(f"[1/4] {env_id}: {num} train + {s.val} val + {s.test} test planner demos{dart} -> {demos}", flush=True)
         write_splits(env_id, demos, num, s.test, control_mode=s.control_mode, procs=s.procs,
                      progress=sys.stderr.isatty(), val=s.val, demonstrator=demonstrator)
@@ -285,6 +289,8 @@ def write_report(results: dict, out: Path) -> Path:
         f"{s['control_mode']} actions, state observations"
         + (f" without dimensions {', '.join(map(str, extra['ignore_obs']))}" if extra.get("ignore_obs") else "")
         + (f"; training demos DART-style (arm noise {s['action_noise']})" if s.get("action_noise") else "")
+        + (f"; training demos held still {s['hold_after_success']} steps after the success"
+           if s.get("hold_after_success") else "")
         + (f"; CoT weight {extra['cot_weight']}" if extra.get("cot_weight") is not None else "")
         + (f"; offset head on the {extra['offset_from']} token" if extra.get("offset_from") else "")
         + (f"; observation std floored at {extra['obs_std_floor']:g}" if extra.get("obs_std_floor") else "")
@@ -431,6 +437,10 @@ class ManiSkillReproduce:
     """DART-style training demos (`cotpc demos maniskill --action-noise`): the arm actions executed with Gaussian
     noise of this std (normalised units), the planner's corrections recorded; 0.1 is what the results in
     docs/results/maniskill.md use. The validation and test demos stay the planner's own. Default: off, as the paper."""
+    hold_after_success: int = 0
+    """Training demos that end with the arm held still this many steps after the success (`cotpc demos maniskill
+    --hold-after-success`; 20 is what docs/results/maniskill.md uses): without them nothing shows a policy what
+    to do once the task is done, and success_at_end falls short of success_once. Default: 0, as the paper."""
     test: int = 100
     """Test demos per task: their seeds are the unseen evaluation set."""
     val: int = 100
@@ -476,7 +486,7 @@ def study_settings(cfg: ManiSkillReproduce) -> ManiSkillStudySettings:
         curve_episodes=cfg.curve_episodes or None, curve_every=cfg.curve_every, paper_protocol=cfg.paper_protocol,
         jobs=cfg.jobs,
         control_mode=cfg.control_mode, horizon=cfg.horizon, procs=cfg.procs, backend=cfg.backend,
-        action_noise=cfg.action_noise,
+        action_noise=cfg.action_noise, hold_after_success=cfg.hold_after_success,
         train=TrainConfig(data=cfg.out / "<task>" / "demos" / "train.h5", iters=cfg.iters, device=cfg.device,
                           batch_size=cfg.batch_size, context=cfg.context, n_centres=cfg.n_centres,
                           use_actions=cfg.use_actions, keep_checkpoints=cfg.keep_checkpoints, compile=cfg.compile,
