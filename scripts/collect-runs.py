@@ -31,7 +31,7 @@ def summary(path: Path) -> dict | None:
 def collect_run(run: Path) -> dict:
     row: dict = {}
     curve, unseen_by_checkpoint = {}, {}
-    for ckpt in sorted((run / "checkpoints").glob("step_*")):
+    for ckpt in sorted(p for p in (run / "checkpoints").glob("step_*") if p.is_dir()):  # not logs beside them
         step = str(int(ckpt.name.split("_")[1]))
         scored = summary(ckpt / "eval_val.json")
         if scored is not None:
