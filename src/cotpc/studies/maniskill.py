@@ -20,7 +20,7 @@ from typing import Literal, Optional
 import numpy as np
 import torch
 
-from cotpc.envs.maniskill.demos import ManiSkillDemos, checked_demonstrator, make_demos, write_splits
+from cotpc.envs.maniskill.demos import Demonstrator, ManiSkillDemos, checked_demonstrator, make_demos, write_splits
 from cotpc.envs.maniskill.env import HORIZONS, import_maniskill, is_maniskill_env
 from cotpc.envs.spec import GENERIC, env_spec, task_defaults
 from cotpc.envs.maniskill.rollout import evaluate, evaluate_run, policy_loader
@@ -82,14 +82,14 @@ def run(s: ManiSkillStudySettings) -> dict:
     protocol: dict = {}  # env -> policy -> seed -> unseen success of the last kept checkpoints (paper's protocol)
     selected: dict = {}  # env -> policy -> seed -> the best validation checkpoint's unseen success (our headline)
     demo_counts = {env_id: s.num or PAPER_DEMOS.get(env_id, 500) for env_id in s.envs}
+    altered = Demonstrator.describe(demonstrator.generation_key())  # "; ..." per option, "" for the planner's own
+    altered = f" (training demos: {altered[2:]})" if altered else ""
     for env_id in s.envs:
         task = out / env_id
         demos = task / "demos"
         num = demo_counts[env_id]
-        dart = f" (training demos DART-style, arm noise {s.action_noise})" if s.action_noise else ""
-        if s.hold_after_success:
-            dart += f" (held still {s.hold_after_success} steps after the success)"
-        print(f"[1/4] {env_id}: {num} train + {s.val} val + {s.test} test planner demos{dart} -> {demos}", flush=True)
+        print(f"[1/4] {env_id}: {num} train + {s.val} val + {s.test} test planner demos{altered} -> {demos}",
+              flush=True)
         write_splits(env_id, demos, num, s.test, control_mode=s.control_mode, procs=s.procs,
                      progress=sys.stderr.isatty(), val=s.val, demonstrator=demonstrator)
         defaults = task_defaults(env_id)  # the paper's single-arm setting
