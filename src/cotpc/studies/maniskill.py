@@ -82,8 +82,8 @@ def run(s: ManiSkillStudySettings) -> dict:
     protocol: dict = {}  # env -> policy -> seed -> unseen success of the last kept checkpoints (paper's protocol)
     selected: dict = {}  # env -> policy -> seed -> the best validation checkpoint's unseen success (our headline)
     demo_counts = {env_id: s.num or PAPER_DEMOS.get(env_id, 500) for env_id in s.envs}
-    altered = Demonstrator.describe(demonstrator.generation_key())  # "; ..." per option, "" for the planner's own
-    altered = f" (training demos: {altered[2:]})" if altered else ""
+    altered = Demonstrator.describe(demonstrator.generation_key()).removeprefix("; ")  # "" for the planner's own
+    altered = f" (training demos: {altered})" if altered else ""
     for env_id in s.envs:
         task = out / env_id
         demos = task / "demos"
